@@ -1,0 +1,51 @@
+"""The ``magnav-ins`` command. Sub-commands live in :mod:`magnav_ins.commands`, one module per group.
+
+User mistakes (:class:`~magnav_ins.core.errors.MagnavError`) become a one-line message on stderr and exit
+status 2; nothing is half-written because every writer goes through :mod:`magnav_ins.core.atomic`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from . import __version__
+from .core.errors import MagnavError
+
+#: command-group modules under ``magnav_ins.commands``, in the order ``--help`` lists them
+COMMAND_MODULES: tuple[str, ...] = (
+    "ins",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="magnav-ins",
+        description="INS aided by magnetic and gravity map matching (no GNSS).",
+    )
+    parser.add_argument("--version", action="version", version=f"magnav-ins {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"{__package__}.commands.{name}").add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point: parse ``argv``, run the handler, map user errors to exit status 2."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.handler(args) or 0)
+    except MagnavError as exc:
+        print(f"magnav-ins: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("magnav-ins: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
