@@ -213,3 +213,37 @@ class Innovation:
     reason: str = ""
     source: str = ""
     extra: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class NavTrajectory:
+    """A time series of navigation states (truth or INS output): ``t`` (N,) s; ``lat``, ``lon`` (N,) rad;
+    ``h`` (N,) m ellipsoidal; ``v_n`` (N,3) NED m/s; ``q_nb`` (N,4) scalar-last body->NED."""
+
+    t: FloatArray
+    lat: FloatArray
+    lon: FloatArray
+    h: FloatArray
+    v_n: FloatArray
+    q_nb: FloatArray
+
+    def __post_init__(self) -> None:
+        n = len(np.asarray(self.t))
+        for name, tail in (("t", ()), ("lat", ()), ("lon", ()), ("h", ()), ("v_n", (3,)), ("q_nb", (4,))):
+            arr = np.asarray(getattr(self, name), dtype=float)
+            if arr.shape != (n, *tail):
+                raise InputError(f"NavTrajectory.{name}: expected shape {(n, *tail)}, got {arr.shape}")
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def at(self, k: int) -> NavState:
+        """The state at sample ``k``."""
+        return NavState(float(self.t[k]), float(self.lat[k]), float(self.lon[k]), float(self.h[k]), self.v_n[k], self.q_nb[k])
+
+    def slice(self, i0: int, i1: int) -> NavTrajectory:
+        """Samples ``i0 <= k < i1``."""
+        return NavTrajectory(
+            self.t[i0:i1], self.lat[i0:i1], self.lon[i0:i1], self.h[i0:i1], self.v_n[i0:i1], self.q_nb[i0:i1]
+        )
