@@ -123,9 +123,7 @@ def latlon_to_meters(
     return np.asarray(d_lat) * (r_n + h), np.asarray(d_lon) * (r_e + h) * np.cos(lat)
 
 
-def horizontal_error_m(
-    lat: ArrayLike, lon: ArrayLike, lat_true: ArrayLike, lon_true: ArrayLike
-) -> NDArray[np.float64]:
+def horizontal_error_m(lat: ArrayLike, lon: ArrayLike, lat_true: ArrayLike, lon_true: ArrayLike) -> NDArray[np.float64]:
     """Horizontal distance (m) between estimated and true positions (local-tangent approximation, < 1e-6 rel.
     error below 100 km separation)."""
     lat_true = np.asarray(lat_true, float)
@@ -141,7 +139,9 @@ def wrap_angle(a: ArrayLike) -> NDArray[np.float64]:
 # --- attitude ------------------------------------------------------------------------------------------
 def q_nb_from_euler(roll: ArrayLike, pitch: ArrayLike, yaw: ArrayLike) -> NDArray[np.float64]:
     """Body->NED quaternion (scalar-last) from roll, pitch, yaw (rad; aerospace Z-Y-X sequence)."""
-    angles = np.stack(np.broadcast_arrays(np.asarray(yaw, float), np.asarray(pitch, float), np.asarray(roll, float)), -1)
+    angles = np.stack(
+        np.broadcast_arrays(np.asarray(yaw, float), np.asarray(pitch, float), np.asarray(roll, float)), -1
+    )
     return Rotation.from_euler("ZYX", angles).as_quat()
 
 

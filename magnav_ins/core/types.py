@@ -240,7 +240,9 @@ class NavTrajectory:
 
     def at(self, k: int) -> NavState:
         """The state at sample ``k``."""
-        return NavState(float(self.t[k]), float(self.lat[k]), float(self.lon[k]), float(self.h[k]), self.v_n[k], self.q_nb[k])
+        return NavState(
+            float(self.t[k]), float(self.lat[k]), float(self.lon[k]), float(self.h[k]), self.v_n[k], self.q_nb[k]
+        )
 
     def slice(self, i0: int, i1: int) -> NavTrajectory:
         """Samples ``i0 <= k < i1``."""

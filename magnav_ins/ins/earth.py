@@ -59,11 +59,14 @@ def normal_gravity(lat: ArrayLike, h: ArrayLike) -> NDArray[np.float64]:
     q0 = _q(np.asarray(WGS84_B))
     qp = 3.0 * (1.0 + u2 / e2) * (1.0 - (u / _E_LIN) * np.arctan(_E_LIN / u)) - 1.0
     om2 = WGS84_OMEGA_E**2
-    gamma_u = -(
-        WGS84_GM / (u2 + e2)
-        + om2 * WGS84_A**2 * _E_LIN / (u2 + e2) * (qp / q0) * (0.5 * sb2 - 1.0 / 6.0)
-        - om2 * u * cb2
-    ) / w
+    gamma_u = (
+        -(
+            WGS84_GM / (u2 + e2)
+            + om2 * WGS84_A**2 * _E_LIN / (u2 + e2) * (qp / q0) * (0.5 * sb2 - 1.0 / 6.0)
+            - om2 * u * cb2
+        )
+        / w
+    )
     gamma_beta = (om2 * WGS84_A**2 / np.sqrt(u2 + e2) * _q(u) / q0 - om2 * np.sqrt(u2 + e2)) * np.sqrt(sb2 * cb2) / w
     return np.hypot(gamma_u, gamma_beta)
 
@@ -79,9 +82,7 @@ def gravity_n(lat: ArrayLike, h: ArrayLike) -> NDArray[np.float64]:
     h = np.asarray(h, dtype=float)
     s2 = np.sin(lat) ** 2
     g0 = somigliana(lat)
-    g_d = g0 * (
-        1.0 - 2.0 / WGS84_A * (1.0 + WGS84_F + WGS84_M - 2.0 * WGS84_F * s2) * h + 3.0 * h**2 / WGS84_A**2
-    )
+    g_d = g0 * (1.0 - 2.0 / WGS84_A * (1.0 + WGS84_F + WGS84_M - 2.0 * WGS84_F * s2) * h + 3.0 * h**2 / WGS84_A**2)
     g_n = -8.08e-9 * h * np.sin(2.0 * lat)
     return np.stack(np.broadcast_arrays(g_n, np.zeros_like(g_d), g_d), axis=-1)
 
