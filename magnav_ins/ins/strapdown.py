@@ -1,0 +1,617 @@
+"""Strapdown inertial navigation: the NED mechanisation on WGS-84, one compiled algorithm in two forms.
+
+The algorithm (Savage, "Strapdown inertial navigation integration algorithm design", Parts 1-2, JGCD 21(1-2),
+1998; Groves 2013, *Principles of GNSS, Inertial, and Multisensor Integrated Navigation Systems*, 2nd ed.,
+sec. 5.4-5.5 and 5.5.4-5.5.5 for the precision forms) advances the state ``(lat, lon, h, v_n, q_nb)`` over one
+IMU interval ``(t[k-1], t[k]]`` from the angle increment ``dtheta_b`` (rad) and the velocity increment ``dv_b``
+(m/s) of that interval, body FRD, together with the increments of the interval before:
+
+1. Attitude (Savage Part 1 eq. 29 two-sample coning; Groves eq. 5.97): body rotation vector
+   ``phi = dtheta_k + (dtheta_{k-1} x dtheta_k) / 12``; navigation-frame rotation ``zeta = omega_in_n dt`` with
+   ``omega_in_n = omega_ie_n + omega_en_n`` (Earth rate and transport rate, Groves eq. 5.41, 5.44) evaluated
+   at mid-interval; ``q_nb(k) = q(-zeta) * q_nb(k-1) * q(phi)`` (exact rotation-vector quaternions).
+2. Specific-force velocity increment (Savage Part 2 eq. 22-24, 36; Groves eq. 5.98-5.99):
+   ``dv_rot = dv_k + (dtheta_k x dv_k) / 2`` (rotation compensation) ``+ (dtheta_{k-1} x dv_k + dv_{k-1} x
+   dtheta_k) / 12`` (two-sample sculling), then ``dv_sf_n = (I - [zeta x] / 2) C_nb(k-1) dv_rot``.
+3. Velocity (Groves eq. 5.54): ``v_n(k) = v_n(k-1) + dv_sf_n + (g_n - (2 omega_ie_n + omega_en_n) x v_n) dt``
+   with gravity (:func:`gravity_ned`, the formula of :func:`magnav_ins.ins.earth.gravity_n`) and the Coriolis
+   term at mid-interval position and velocity (one extrapolation step, second-order accurate).
+4. Position on the ellipsoid (Groves eq. 5.56, trapezoidal): ``h -= dt (v_D(k-1) + v_D(k)) / 2``;
+   ``lat += dt (v_N(k-1) + v_N(k)) / 2 / (R_N + h)``; ``lon += dt (v_E(k-1) + v_E(k)) / 2 / ((R_E + h) cos lat)``,
+   radii of curvature (Groves eq. 2.105-2.106) at the mid-interval latitude and height.
+
+Rate-type IMUs (:class:`~magnav_ins.core.types.ImuBatch`, sample k = *mean* rate over ``(t[k-1], t[k]]``) are
+turned into increments ``dtheta = gyro dt``, ``dv = accel dt``; increment-type IMUs
+(:class:`~magnav_ins.core.types.ImuIncrements`) are used as they are. Both then run the same step.
+
+Forms:
+
+* streaming: :class:`StrapdownStepper` (one sample per call, a few microseconds; for fusers and the MAVLink bridge);
+* batch: :func:`integrate` (one run, returns a :class:`~magnav_ins.core.types.NavTrajectory`) and
+  :func:`integrate_batch` (many runs in parallel, optionally decimated, returns a :class:`NavTrajectoryBatch`).
+
+The vertical channel is free (unaided) and therefore unstable: a height error grows roughly as
+``exp(t sqrt(2 g / R))`` (time constant about 9.5 min), so over hours the free height is meaningless and, through
+the radii and the Coriolis term, it eventually corrupts the horizontal solution. Pass ``altitude_hold=H`` (metres,
+ellipsoidal) to every form to clamp ``h = H`` and ``v_D = 0`` after each step (a perfect external height aid, as
+for a ship or a barometer-held aircraft); ``None`` leaves the channel free.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from ..core.errors import InputError
+from ..core.frames import WGS84_A, WGS84_E2, WGS84_F, WGS84_GAMMA_E, WGS84_K, WGS84_M, WGS84_OMEGA_E
+from ..core.types import FloatArray, ImuBatch, ImuIncrements, NavState, NavTrajectory
+
+__all__ = [
+    "NavTrajectoryBatch",
+    "StrapdownStepper",
+    "gravity_ned",
+    "integrate",
+    "integrate_batch",
+]
+
+# Layout of the flat state vector used by the kernels: lat, lon, h, v_n (3), q_nb (4, scalar-last).
+_LAT, _LON, _H, _V, _Q = 0, 1, 2, 3, 6
+_NX = 10
+# Layout of the "previous increment" vector: dtheta_b (3), dv_b (3), valid flag.
+_NP = 7
+# Stepper work vector: t, state (10), previous increment (7).
+_NS = 1 + _NX + _NP
+
+_A = WGS84_A
+_E2 = WGS84_E2
+_F = WGS84_F
+_M = WGS84_M
+_K = WGS84_K
+_GE = WGS84_GAMMA_E
+_W = WGS84_OMEGA_E
+_NORTH_DEFLECTION = 8.08e-9  # s^-2: north component of normal gravity per metre of height per sin(2 lat)
+
+
+@njit(cache=True, fastmath=False)
+def gravity_ned(lat: float, h: float) -> tuple[float, float]:
+    """Normal gravity (gravitation + centrifugal) in NED at geodetic ``lat`` (rad), ellipsoidal ``h`` (m):
+    returns ``(g_north, g_down)`` m/s^2 (the east component is zero).
+
+    Same formula as :func:`magnav_ins.ins.earth.gravity_n` (Somigliana, Groves eq. 2.134, with the second-order
+    height expansion of Groves eq. 2.139-2.140 / NIMA TR8350.2 eq. 4-3), compiled for the mechanisation; the tests
+    hold the two equal to 1e-12 m/s^2.
+    """
+    s = math.sin(lat)
+    s2 = s * s
+    g0 = _GE * (1.0 + _K * s2) / math.sqrt(1.0 - _E2 * s2)
+    g_d = g0 * (1.0 - 2.0 / _A * (1.0 + _F + _M - 2.0 * _F * s2) * h + 3.0 * h * h / (_A * _A))
+    g_n = -_NORTH_DEFLECTION * h * math.sin(2.0 * lat)
+    return g_n, g_d
+
+
+@njit(cache=True)
+def _rotvec_quat(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """Scalar-last quaternion of the rotation vector (x, y, z) rad (exact; Taylor series below 1e-4 rad)."""
+    n2 = x * x + y * y + z * z
+    if n2 < 1e-8:
+        k = 0.5 - n2 / 48.0
+        c = 1.0 - n2 / 8.0 + n2 * n2 / 384.0
+    else:
+        n = math.sqrt(n2)
+        k = math.sin(0.5 * n) / n
+        c = math.cos(0.5 * n)
+    return k * x, k * y, k * z, c
+
+
+@njit(cache=True)
+def _qmul(
+    ax: float, ay: float, az: float, aw: float, bx: float, by: float, bz: float, bw: float
+) -> tuple[float, float, float, float]:
+    """Hamilton product ``a * b`` of scalar-last quaternions (``R(a b) = R(a) R(b)``)."""
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
+@njit(cache=True)
+def _step(
+    x: FloatArray,
+    prev: FloatArray,
+    dt: float,
+    tx: float,
+    ty: float,
+    tz: float,
+    vx: float,
+    vy: float,
+    vz: float,
+    coning_sculling: bool,
+    h_hold: float,
+) -> None:
+    """Advance the state ``x`` (layout ``_LAT.._Q``) in place over one interval of length ``dt`` (s) with the
+    angle increment ``(tx, ty, tz)`` rad and velocity increment ``(vx, vy, vz)`` m/s (body FRD). ``prev`` holds
+    the previous interval's increments (and a validity flag) and is updated to this interval's. ``h_hold`` NaN
+    leaves the vertical channel free; otherwise ``h = h_hold``, ``v_D = 0`` after the step."""
+    lat = x[_LAT]
+    h = x[_H]
+    vn = x[_V]
+    ve = x[_V + 1]
+    vd = x[_V + 2]
+
+    # --- two-sample coning and sculling (Savage Part 1 eq. 29, Part 2 eq. 36) ----------------------------------
+    px, py, pz = tx, ty, tz
+    rx = vx + 0.5 * (ty * vz - tz * vy)
+    ry = vy + 0.5 * (tz * vx - tx * vz)
+    rz = vz + 0.5 * (tx * vy - ty * vx)
+    if coning_sculling and prev[6] > 0.0:
+        ax, ay, az = prev[0], prev[1], prev[2]
+        bx, by, bz = prev[3], prev[4], prev[5]
+        px += (ay * tz - az * ty) / 12.0
+        py += (az * tx - ax * tz) / 12.0
+        pz += (ax * ty - ay * tx) / 12.0
+        rx += ((ay * vz - az * vy) + (by * tz - bz * ty)) / 12.0
+        ry += ((az * vx - ax * vz) + (bz * tx - bx * tz)) / 12.0
+        rz += ((ax * vy - ay * vx) + (bx * ty - by * tx)) / 12.0
+    prev[0] = tx
+    prev[1] = ty
+    prev[2] = tz
+    prev[3] = vx
+    prev[4] = vy
+    prev[5] = vz
+    prev[6] = 1.0
+
+    # --- mid-interval position by extrapolation ---------------------------------------------------------------
+    s = math.sin(lat)
+    den = 1.0 - _E2 * s * s
+    r_e0 = _A / math.sqrt(den)
+    r_n0 = r_e0 * (1.0 - _E2) / den
+    lat_m = lat + 0.5 * dt * vn / (r_n0 + h)
+    h_m = h - 0.5 * dt * vd
+    s = math.sin(lat_m)
+    c = math.cos(lat_m)
+    den = 1.0 - _E2 * s * s
+    r_e = _A / math.sqrt(den)
+    r_n = r_e * (1.0 - _E2) / den
+    rn_h = r_n + h_m
+    re_h = r_e + h_m
+    wie_n = _W * c
+    wie_d = -_W * s
+
+    # --- specific-force increment in NED (Savage Part 2 eq. 22-24) -------------------------------------------
+    q0, q1, q2, q3 = x[_Q], x[_Q + 1], x[_Q + 2], x[_Q + 3]  # x, y, z, w
+    c00 = 1.0 - 2.0 * (q1 * q1 + q2 * q2)
+    c01 = 2.0 * (q0 * q1 - q2 * q3)
+    c02 = 2.0 * (q0 * q2 + q1 * q3)
+    c10 = 2.0 * (q0 * q1 + q2 * q3)
+    c11 = 1.0 - 2.0 * (q0 * q0 + q2 * q2)
+    c12 = 2.0 * (q1 * q2 - q0 * q3)
+    c20 = 2.0 * (q0 * q2 - q1 * q3)
+    c21 = 2.0 * (q1 * q2 + q0 * q3)
+    c22 = 1.0 - 2.0 * (q0 * q0 + q1 * q1)
+    fn = c00 * rx + c01 * ry + c02 * rz
+    fe = c10 * rx + c11 * ry + c12 * rz
+    fd = c20 * rx + c21 * ry + c22 * rz
+    # navigation-frame rotation over the interval with the start velocity (used only in this small term)
+    zn = (wie_n + ve / re_h) * dt
+    ze = (-vn / rn_h) * dt
+    zd = (wie_d - ve * s / (c * re_h)) * dt
+    dvn = fn - 0.5 * (ze * fd - zd * fe)
+    dve = fe - 0.5 * (zd * fn - zn * fd)
+    dvd = fd - 0.5 * (zn * fe - ze * fn)
+
+    # --- gravity and Coriolis at mid-interval (Groves eq. 5.54) ----------------------------------------------
+    g_n, g_d = gravity_ned(lat_m, h_m)
+    vmn = vn + 0.5 * (dvn + g_n * dt)
+    vme = ve + 0.5 * dve
+    vmd = vd + 0.5 * (dvd + g_d * dt)
+    wen_n = vme / re_h
+    wen_e = -vmn / rn_h
+    wen_d = -vme * s / (c * re_h)
+    wn = 2.0 * wie_n + wen_n
+    we = wen_e
+    wd = 2.0 * wie_d + wen_d
+    vn1 = vn + dvn + (g_n - (we * vmd - wd * vme)) * dt
+    ve1 = ve + dve + (-(wd * vmn - wn * vmd)) * dt
+    vd1 = vd + dvd + (g_d - (wn * vme - we * vmn)) * dt
+
+    # --- position, trapezoidal (Groves eq. 5.56) --------------------------------------------------------------
+    van = 0.5 * (vn + vn1)
+    vae = 0.5 * (ve + ve1)
+    vad = 0.5 * (vd + vd1)
+    h1 = h - vad * dt
+    lat1 = lat + van * dt / rn_h
+    lon1 = x[_LON] + vae * dt / (re_h * c)
+
+    # --- attitude: q_nb(k) = q(-zeta) q_nb(k-1) q(phi) (Savage Part 1 eq. 11-12, 18) ------------------------
+    zn = -(wie_n + vae / re_h) * dt
+    ze = (van / rn_h) * dt
+    zd = -(wie_d - vae * s / (c * re_h)) * dt
+    bx, by, bz, bw = _rotvec_quat(px, py, pz)
+    nx, ny, nz, nw = _rotvec_quat(zn, ze, zd)
+    tx_, ty_, tz_, tw_ = _qmul(q0, q1, q2, q3, bx, by, bz, bw)
+    ox, oy, oz, ow = _qmul(nx, ny, nz, nw, tx_, ty_, tz_, tw_)
+    norm = math.sqrt(ox * ox + oy * oy + oz * oz + ow * ow)
+    if ow < 0.0:
+        norm = -norm  # keep the scalar part non-negative (a unique sign for output and comparison)
+
+    x[_LAT] = lat1
+    x[_LON] = lon1
+    x[_V] = vn1
+    x[_V + 1] = ve1
+    if math.isnan(h_hold):
+        x[_H] = h1
+        x[_V + 2] = vd1
+    else:
+        x[_H] = h_hold
+        x[_V + 2] = 0.0
+    x[_Q] = ox / norm
+    x[_Q + 1] = oy / norm
+    x[_Q + 2] = oz / norm
+    x[_Q + 3] = ow / norm
+
+
+@njit(cache=True)
+def _run(
+    t: FloatArray,
+    dtheta: FloatArray,
+    dv: FloatArray,
+    is_rate: bool,
+    x: FloatArray,
+    prev: FloatArray,
+    coning_sculling: bool,
+    h_hold: float,
+    decimate: int,
+    out: FloatArray,
+    row0: int,
+    k0: int,
+) -> int:
+    """Integrate samples ``k0..N-1`` (sample k covers ``(t[k-1], t[k]]``; ``t[k0-1]`` must exist), writing the
+    state after every ``decimate``-th sample (``k % decimate == 0``) into ``out[row]`` from ``row0``. ``x`` and
+    ``prev`` are updated in place. Returns the next free row."""
+    row = row0
+    n = t.shape[0]
+    for k in range(k0, n):
+        dt = t[k] - t[k - 1]
+        if is_rate:
+            _step(
+                x,
+                prev,
+                dt,
+                dtheta[k, 0] * dt,
+                dtheta[k, 1] * dt,
+                dtheta[k, 2] * dt,
+                dv[k, 0] * dt,
+                dv[k, 1] * dt,
+                dv[k, 2] * dt,
+                coning_sculling,
+                h_hold,
+            )
+        else:
+            _step(
+                x,
+                prev,
+                dt,
+                dtheta[k, 0],
+                dtheta[k, 1],
+                dtheta[k, 2],
+                dv[k, 0],
+                dv[k, 1],
+                dv[k, 2],
+                coning_sculling,
+                h_hold,
+            )
+        if k % decimate == 0:
+            for i in range(_NX):
+                out[row, i] = x[i]
+            row += 1
+    return row
+
+
+@njit(cache=True)
+def _seed_prev(t: FloatArray, dtheta: FloatArray, dv: FloatArray, is_rate: bool, prev: FloatArray) -> None:
+    """Use sample 0 (the interval ending at ``t[0]``) as the "previous increment" of the first step. Rates are
+    turned into increments with the first interval ``t[1] - t[0]`` (the length of interval 0 is unknown)."""
+    scale = (t[1] - t[0]) if is_rate else 1.0
+    for i in range(3):
+        prev[i] = dtheta[0, i] * scale
+        prev[3 + i] = dv[0, i] * scale
+    prev[6] = 1.0
+
+
+@njit(cache=True)
+def _integrate_one(
+    t: FloatArray,
+    dtheta: FloatArray,
+    dv: FloatArray,
+    is_rate: bool,
+    x0: FloatArray,
+    coning_sculling: bool,
+    h_hold: float,
+    decimate: int,
+) -> FloatArray:
+    n = t.shape[0]
+    m = (n + decimate - 1) // decimate
+    out = np.empty((m, _NX))
+    x = x0.copy()
+    prev = np.zeros(_NP)
+    out[0, :] = x
+    if n > 1:
+        _seed_prev(t, dtheta, dv, is_rate, prev)
+        _run(t, dtheta, dv, is_rate, x, prev, coning_sculling, h_hold, decimate, out, 1, 1)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _integrate_many(
+    t: FloatArray,
+    gyro: FloatArray,
+    accel: FloatArray,
+    x0: FloatArray,
+    coning_sculling: bool,
+    h_hold: float,
+    decimate: int,
+) -> FloatArray:
+    r_runs = gyro.shape[0]
+    n = t.shape[0]
+    m = (n + decimate - 1) // decimate
+    out = np.empty((r_runs, m, _NX))
+    for r in prange(r_runs):
+        x = x0[r].copy()
+        prev = np.zeros(_NP)
+        for i in range(_NX):
+            out[r, 0, i] = x[i]
+        if n > 1:
+            _seed_prev(t, gyro[r], accel[r], True, prev)
+            _run(t, gyro[r], accel[r], True, x, prev, coning_sculling, h_hold, decimate, out[r], 1, 1)
+    return out
+
+
+@njit(cache=True)
+def _stepper_step(
+    s: FloatArray,
+    t: float,
+    a: FloatArray,
+    b: FloatArray,
+    is_rate: bool,
+    coning_sculling: bool,
+    h_hold: float,
+) -> bool:
+    """One streaming step on the work vector ``s`` = (t, state, prev). Returns False (and changes nothing) if
+    ``t`` does not advance or a sample is not finite."""
+    dt = t - s[0]
+    if not (dt > 0.0):
+        return False
+    for i in range(3):
+        if not (math.isfinite(a[i]) and math.isfinite(b[i])):
+            return False
+    k = dt if is_rate else 1.0
+    _step(
+        s[1 : 1 + _NX],
+        s[1 + _NX :],
+        dt,
+        a[0] * k,
+        a[1] * k,
+        a[2] * k,
+        b[0] * k,
+        b[1] * k,
+        b[2] * k,
+        coning_sculling,
+        h_hold,
+    )
+    s[0] = t
+    return True
+
+
+def _state_vector(nav: NavState) -> FloatArray:
+    x = np.empty(_NX)
+    x[_LAT], x[_LON], x[_H] = nav.lat, nav.lon, nav.h
+    x[_V : _V + 3] = nav.v_n
+    q = np.asarray(nav.q_nb, dtype=float)
+    x[_Q : _Q + 4] = q if q[3] >= 0.0 else -q
+    return x
+
+
+def _hold(altitude_hold: float | None) -> float:
+    return math.nan if altitude_hold is None else float(altitude_hold)
+
+
+class StrapdownStepper:
+    """Streaming mechanisation: one IMU sample per call (same algorithm and numbers as :func:`integrate`).
+
+    ``step_rate(t, gyro_b, accel_b)`` takes the mean rates over ``(t_prev, t]`` (rad/s, m/s^2 specific force, body
+    FRD); ``step_increment(t, dtheta_b, dv_b)`` the increments over the same interval (rad, m/s). ``t`` (s) must
+    increase; the first call integrates from ``init.t``. Coning/sculling use the previous call's increments (none
+    before the first call, so the first step is single-sample); :meth:`reset` replaces the navigation state (a
+    fuser's feedback correction) and keeps that memory. Pass float64 numpy arrays of shape (3,) for the few-µs
+    path. ``altitude_hold`` (m) clamps the vertical channel (module docstring).
+    """
+
+    __slots__ = ("_s", "_cs", "_hold")
+
+    def __init__(self, init: NavState, *, coning_sculling: bool = True, altitude_hold: float | None = None) -> None:
+        self._s = np.zeros(_NS)
+        self._cs = bool(coning_sculling)
+        self._hold = _hold(altitude_hold)
+        self._set(init)
+
+    def _set(self, nav: NavState) -> None:
+        self._s[0] = nav.t
+        self._s[1 : 1 + _NX] = _state_vector(nav)
+        if not math.isnan(self._hold):
+            self._s[1 + _H] = self._hold
+            self._s[1 + _V + 2] = 0.0
+
+    def _step(self, t: float, a: FloatArray, b: FloatArray, is_rate: bool) -> None:
+        if not _stepper_step(self._s, t, a, b, is_rate, self._cs, self._hold):
+            raise InputError(
+                f"strapdown step at t={t!r}: time must increase (last t={self._s[0]!r}) and samples must be "
+                f"finite, got {np.asarray(a).tolist()}, {np.asarray(b).tolist()}"
+            )
+
+    def step_rate(self, t: float, gyro_b: FloatArray, accel_b: FloatArray) -> None:
+        """Advance to ``t`` (s) with mean rates ``gyro_b`` (rad/s) and specific force ``accel_b`` (m/s^2), FRD."""
+        self._step(t, gyro_b, accel_b, True)
+
+    def step_increment(self, t: float, dtheta_b: FloatArray, dv_b: FloatArray) -> None:
+        """Advance to ``t`` (s) with angle increment ``dtheta_b`` (rad) and velocity increment ``dv_b`` (m/s)."""
+        self._step(t, dtheta_b, dv_b, False)
+
+    @property
+    def t(self) -> float:
+        """Time of the current state, s."""
+        return float(self._s[0])
+
+    @property
+    def nav(self) -> NavState:
+        """The current navigation state."""
+        x = self._s[1 : 1 + _NX]
+        return NavState(float(self._s[0]), float(x[_LAT]), float(x[_LON]), float(x[_H]), x[_V : _V + 3].copy(),
+                        x[_Q : _Q + 4].copy())  # fmt: skip
+
+    def reset(self, nav: NavState) -> None:
+        """Replace the navigation state (e.g. after a filter correction); keeps the coning/sculling memory."""
+        self._set(nav)
+
+
+def _trajectory(t: FloatArray, out: FloatArray) -> NavTrajectory:
+    return NavTrajectory(
+        t, out[:, _LAT].copy(), out[:, _LON].copy(), out[:, _H].copy(), out[:, _V : _V + 3].copy(), out[:, _Q:].copy()
+    )
+
+
+def _check_time(t: FloatArray, what: str) -> None:
+    if t.ndim != 1 or len(t) < 1:
+        raise InputError(f"{what}: t must be a non-empty 1-D array, got shape {t.shape}")
+    bad = np.flatnonzero(~(np.diff(t) > 0.0))
+    if len(bad):
+        k = int(bad[0]) + 1
+        raise InputError(f"{what}: t must increase strictly; t[{k}]={t[k]!r} after t[{k - 1}]={t[k - 1]!r}")
+
+
+def integrate(
+    init: NavState,
+    imu: ImuBatch | ImuIncrements,
+    *,
+    coning_sculling: bool = True,
+    altitude_hold: float | None = None,
+) -> NavTrajectory:
+    """Integrate a recorded IMU from ``init`` (batch form of :class:`StrapdownStepper`).
+
+    Row ``k`` of the result is the state at ``imu.t[k]``; row 0 is ``init`` (``init.t`` must equal ``imu.t[0]``
+    within 1 µs). Sample 0 describes the interval *ending* at ``t[0]``: it is not integrated, it only serves as the
+    "previous increment" of the two-sample coning and sculling corrections of the first step (for rates it is
+    scaled by ``t[1] - t[0]``). Samples must be finite and ``t`` strictly increasing (:class:`InputError`).
+    """
+    t = np.ascontiguousarray(imu.t, dtype=float)
+    _check_time(t, "integrate")
+    if abs(float(init.t) - float(t[0])) > 1e-6:
+        raise InputError(f"integrate: init.t={init.t!r} s must equal the first IMU time t[0]={t[0]!r} s")
+    if isinstance(imu, ImuBatch):
+        a, b, is_rate = imu.gyro_b, imu.accel_b, True
+    elif isinstance(imu, ImuIncrements):
+        a, b, is_rate = imu.dtheta_b, imu.dv_b, False
+    else:
+        raise InputError(f"integrate: expected ImuBatch or ImuIncrements, got {type(imu).__name__}")
+    a = np.ascontiguousarray(a, dtype=float)
+    b = np.ascontiguousarray(b, dtype=float)
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        k = int(np.flatnonzero(~(np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)))[0])
+        raise InputError(f"integrate: IMU sample {k} (t={t[k]!r}) is not finite")
+    x0 = _state_vector(init)
+    if altitude_hold is not None:
+        x0[_H], x0[_V + 2] = float(altitude_hold), 0.0
+    out = _integrate_one(t, a, b, is_rate, x0, bool(coning_sculling), _hold(altitude_hold), 1)
+    return _trajectory(t, out)
+
+
+@dataclass(frozen=True)
+class NavTrajectoryBatch:
+    """Navigation states of ``R`` runs on a common time axis: ``t`` (M,) s; ``lat``, ``lon`` (R, M) rad; ``h``
+    (R, M) m ellipsoidal; ``v_n`` (R, M, 3) NED m/s; ``q_nb`` (R, M, 4) scalar-last body->NED."""
+
+    t: FloatArray
+    lat: FloatArray
+    lon: FloatArray
+    h: FloatArray
+    v_n: FloatArray
+    q_nb: FloatArray
+
+    @property
+    def runs(self) -> int:
+        return int(self.lat.shape[0])
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def run(self, r: int) -> NavTrajectory:
+        """Run ``r`` as a :class:`~magnav_ins.core.types.NavTrajectory`."""
+        return NavTrajectory(self.t, self.lat[r], self.lon[r], self.h[r], self.v_n[r], self.q_nb[r])
+
+
+def integrate_batch(
+    t: FloatArray,
+    gyro_b: FloatArray,
+    accel_b: FloatArray,
+    lat0: FloatArray,
+    lon0: FloatArray,
+    h0: FloatArray,
+    v0_n: FloatArray,
+    q0_nb: FloatArray,
+    decimate: int = 1,
+    *,
+    coning_sculling: bool = True,
+    altitude_hold: float | None = None,
+) -> NavTrajectoryBatch:
+    """Integrate ``R`` rate-type IMU runs sharing the time axis ``t`` (N,) s, in parallel (numba ``prange``).
+
+    ``gyro_b`` (R, N, 3) rad/s and ``accel_b`` (R, N, 3) m/s^2 are mean rates over ``(t[k-1], t[k]]``, body FRD;
+    initial states at ``t[0]``: ``lat0``, ``lon0`` (R,) rad, ``h0`` (R,) m, ``v0_n`` (R, 3) NED m/s, ``q0_nb``
+    (R, 4) scalar-last. Keeps the states at ``t[::decimate]`` (M = ceil(N / decimate) rows, row 0 = initial
+    state), so long Monte Carlo runs stay in memory. Sample 0 is used as in :func:`integrate`.
+    """
+    t = np.ascontiguousarray(t, dtype=float)
+    _check_time(t, "integrate_batch")
+    gyro_b = np.ascontiguousarray(gyro_b, dtype=float)
+    accel_b = np.ascontiguousarray(accel_b, dtype=float)
+    n = len(t)
+    if gyro_b.ndim != 3 or gyro_b.shape[1:] != (n, 3) or accel_b.shape != gyro_b.shape:
+        raise InputError(f"integrate_batch: gyro_b {gyro_b.shape} and accel_b {accel_b.shape} must both be (R, {n}, 3)")
+    r_runs = gyro_b.shape[0]
+    if int(decimate) < 1:
+        raise InputError(f"integrate_batch: decimate must be >= 1, got {decimate}")
+    x0 = np.empty((r_runs, _NX))
+    for name, arr, sl in (("lat0", lat0, _LAT), ("lon0", lon0, _LON), ("h0", h0, _H)):
+        a = np.broadcast_to(np.asarray(arr, dtype=float), (r_runs,)) if np.ndim(arr) == 0 else np.asarray(arr, float)
+        if a.shape != (r_runs,):
+            raise InputError(f"integrate_batch: {name} must have shape ({r_runs},), got {a.shape}")
+        x0[:, sl] = a
+    v = np.asarray(v0_n, dtype=float)
+    q = np.asarray(q0_nb, dtype=float)
+    if v.shape != (r_runs, 3) or q.shape != (r_runs, 4):
+        raise InputError(f"integrate_batch: v0_n {v.shape} must be ({r_runs}, 3) and q0_nb {q.shape} ({r_runs}, 4)")
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(q[:, 3:4] < 0.0, -q, q)
+    x0[:, _V : _V + 3] = v
+    x0[:, _Q : _Q + 4] = q
+    if altitude_hold is not None:
+        x0[:, _H], x0[:, _V + 2] = float(altitude_hold), 0.0
+    out = _integrate_many(t, gyro_b, accel_b, x0, bool(coning_sculling), _hold(altitude_hold), int(decimate))
+    return NavTrajectoryBatch(
+        t[:: int(decimate)].copy(),
+        out[:, :, _LAT].copy(),
+        out[:, :, _LON].copy(),
+        out[:, :, _H].copy(),
+        out[:, :, _V : _V + 3].copy(),
+        out[:, :, _Q:].copy(),
+    )
+
+
+def set_threads(n: int) -> None:  # pragma: no cover - thin convenience
+    """Limit the numba threads used by :func:`integrate_batch` (the machine may be shared)."""
+    numba.set_num_threads(int(n))
