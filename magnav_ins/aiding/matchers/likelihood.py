@@ -1,0 +1,282 @@
+"""Likelihood map matchers: maximum likelihood (ML), maximum likelihood ratio (MLR), aggregate bin likelihood (ABL).
+
+Sources: Shockley 2012 (seed 003) sec. 4.3.1-4.3.3 and measurement composition sec. 4.4-4.6; Raquet, Shockley &
+Fisher (seed 000) eq. 1. The Gaussian likelihood of the readings ``z_k`` against the map ``m`` at a hypothesised
+position is (003 eq. 2.49-2.52, 000 eq. 1, beta dropped, log space)::
+
+    log L(p) = -1/(2 s^2) sum_k || z_k - m(x_k + p) ||^2 ,   s^2 = sigma_reading^2 + sigma_map^2
+
+where ``x_k`` are the INS-indicated positions of the readings relative to the last one and ``p`` is the
+hypothesised position of the last reading: a section of readings is slid rigidly over the map (the INS is trusted
+over the short section, 003 sec. 4.5). Options: ``demean`` (subtract the section mean from readings and map
+profile, removes a constant bias, 003 sec. 4.6) and ``difference`` (successive differences, s^2 -> 2 s^2).
+
+* ML picks the largest likelihood.
+* MLR divides it by the largest likelihood at least ``min_distance_m`` away and issues a fix only when the ratio
+  exceeds ``ratio_threshold`` (003 sec. 4.3.2: 20 m and 2).
+* ABL normalises the likelihoods to sum to one, requires a normalised peak above ``peak_threshold`` and chooses
+  the bin (side ``bin_size_m``) holding the largest normalised mass (003 sec. 4.3.3; the thesis gives no values,
+  ours are defaults to tune).
+
+The scan runs over a search window around the prior (the thesis' suggested improvement; ``search_window=True``,
+half-width ``window_sigma`` times the prior 1-sigma) or over the whole grid map (``search_window=False``).
+The fix covariance is the second moment of the normalised likelihood about the fix plus the grid quantisation
+``step^2/12``: for a single peak this is the Laplace approximation of the estimator covariance; ambiguity inflates
+it. "No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
+``min_variability`` times s), a likelihood spread wider than ``max_fix_sigma_m``, an MLR ratio or ABL peak below
+threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from ...core.errors import ConfigError
+from ...core.protocols import FieldMap, MatchWindow
+from ...core.types import Fix
+from ._local import (
+    WorkFrame,
+    feature_variability,
+    make_frame,
+    map_components,
+    moments_about,
+    sigma_window,
+    spacing_of,
+    window_axes,
+)
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A log-likelihood surface over candidate positions (north/east metres in ``frame``).
+
+    ``logl`` (M,) with ``-inf`` where the map is off; ``n``, ``e`` (M,) candidate positions; ``shape`` the grid
+    shape when the candidates form a grid (else ``None``); ``step`` the grid spacing m; ``variability`` the map
+    feature variability (unit^2) of the window; ``sigma2`` the likelihood variance used (unit^2)."""
+
+    frame: WorkFrame
+    logl: FloatArray
+    n: FloatArray
+    e: FloatArray
+    shape: tuple[int, int] | None
+    step: float
+    variability: float
+    sigma2: float
+
+
+@dataclass
+class LikelihoodMatcher:
+    """ML / MLR / ABL matcher over a :class:`~magnav_ins.core.protocols.FieldMap` (see the module docstring).
+
+    Parameters (SI; field values in the map's unit): ``method`` "ml" | "mlr" | "abl"; ``ratio_threshold`` and
+    ``min_distance_m`` (MLR); ``bin_size_m`` and ``peak_threshold`` (ABL); ``demean``, ``difference`` (section
+    composition); ``search_window`` and ``window_sigma`` (search window = ``window_sigma`` prior sigmas, at least
+    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma;
+    ``min_variability`` flat-map cut-off in units of s; ``max_fix_sigma_m`` largest accepted fix 1-sigma (default
+    a quarter of the window half-width); ``max_nodes`` cap on scanned nodes."""
+
+    method: str = "ml"
+    ratio_threshold: float = 2.0
+    min_distance_m: float = 20.0
+    bin_size_m: float = 5.0
+    peak_threshold: float = 0.0
+    demean: bool = False
+    difference: bool = False
+    search_window: bool = True
+    window_sigma: float = 4.0
+    window_floor_m: float = 5.0
+    resolution_m: float | None = None
+    map_sigma: float = 0.0
+    min_variability: float = 1.0
+    max_fix_sigma_m: float | None = None
+    max_nodes: int = 2_000_000
+    name: str = ""
+
+    METHODS: ClassVar[tuple[str, ...]] = ("ml", "mlr", "abl")
+
+    def __post_init__(self) -> None:
+        if self.method not in self.METHODS:
+            raise ConfigError(f"likelihood matcher 'method': expected one of {self.METHODS}, got {self.method!r}")
+        for key in ("ratio_threshold", "window_sigma", "bin_size_m"):
+            if not getattr(self, key) > 0:
+                raise ConfigError(f"likelihood matcher '{key}': expected > 0, got {getattr(self, key)!r}")
+        if self.min_distance_m < 0 or self.map_sigma < 0 or self.min_variability < 0 or self.peak_threshold < 0:
+            raise ConfigError("likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold >= 0")
+        if not self.name:
+            self.name = self.method
+
+    # ------------------------------------------------------------------ surface
+    def surface(self, window: MatchWindow, fmap: FieldMap) -> Surface | str:
+        """The log-likelihood surface for ``window`` on ``fmap``, or the reason there is none."""
+        rd = window.readings
+        z = np.asarray(rd.value, dtype=float)
+        ncomp = map_components(fmap)
+        z = z.reshape(len(z), -1)
+        if z.shape[1] != ncomp:
+            return f"reading has {z.shape[1]} components, map has {ncomp}"
+        good = np.all(np.isfinite(z), axis=1) & np.isfinite(window.lat) & np.isfinite(window.lon)
+        if not np.any(good):
+            return "no finite readings (NaN)"
+        z = z[good]
+        lat, lon = np.asarray(window.lat)[good], np.asarray(window.lon)[good]
+        h = np.asarray(window.h, dtype=float)[good]
+        h_last = float(h[-1]) if np.isfinite(h[-1]) else None
+        frame = make_frame(fmap, float(lat[-1]), float(lon[-1]))
+        dn, de = frame.to_ne(lat, lon)
+        step0 = self.resolution_m if self.resolution_m else spacing_of(fmap, 1.0)
+        cov = np.asarray(window.cov_ne, dtype=float)
+        cov_last = cov[-1] if cov.ndim == 3 else cov
+        if self.search_window:
+            half_n, half_e = sigma_window(cov_last, self.window_sigma, max(self.window_floor_m, step0))
+            if not np.isfinite(half_n):
+                return "prior covariance not finite"
+        else:
+            extent = _map_half_extent(fmap, frame)
+            if extent is None:
+                return "search_window=False needs a grid map with known extent"
+            half_n, half_e = extent
+        nz = len(z)
+        native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
+        if native is not None:
+            n_ax, e_ax, v_last = native
+            stride = int(np.ceil(np.sqrt(n_ax.size * e_ax.size * nz / self.max_nodes)))
+            if stride > 1:
+                n_ax, e_ax, v_last = n_ax[::stride], e_ax[::stride], v_last[::stride, ::stride]
+            steps = [float(a[1] - a[0]) for a in (n_ax, e_ax) if a.size > 1]
+            step = float(np.mean(steps)) if steps else step0
+            gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
+            m_last = v_last.reshape(1, gn.size, ncomp)
+            if nz > 1:
+                m_prev = frame.sample(dn[:-1, None, None] + gn[None], de[:-1, None, None] + ge[None], h_last)
+                m = np.concatenate([m_prev.reshape(nz - 1, gn.size, ncomp), m_last], axis=0)
+            else:
+                m = m_last
+        else:
+            n_ax, e_ax, step = window_axes(half_n, half_e, step0, max(self.max_nodes // max(nz, 1), 9))
+            gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
+            m = frame.sample(dn[:, None, None] + gn[None], de[:, None, None] + ge[None], h_last)
+            m = m.reshape(nz, gn.size, ncomp)
+        s2 = float(rd.sigma) ** 2 + self.map_sigma**2
+        center = m[-1, int(np.argmin(gn.ravel() ** 2 + ge.ravel() ** 2))]
+        if np.all(np.isfinite(center)):
+            variability = feature_variability(m[-1], center)
+        else:  # INS position off the map: E (x_i - x_j)^2 = 2 var for the window's finite values
+            variability = (
+                2.0 * float(np.sum(np.nan_to_num(np.nanvar(m[-1], axis=0)))) if np.any(np.isfinite(m[-1])) else 0.0
+            )
+        zz, mm = z[:, None, :], m
+        if self.difference and len(z) > 1:
+            zz, mm = np.diff(zz, axis=0), np.diff(mm, axis=0)
+            s2 = 2.0 * s2
+        if self.demean and len(zz) > 1:
+            zz = zz - zz.mean(axis=0, keepdims=True)
+            mm = mm - mm.mean(axis=0, keepdims=True)
+        logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
+        logl = np.where(np.isfinite(logl), logl, -np.inf)
+        return Surface(frame, logl, gn.ravel(), ge.ravel(), gn.shape, step, variability, s2)
+
+    # ------------------------------------------------------------------ decision
+    def match(self, window: MatchWindow, fmap: FieldMap) -> Fix:
+        """A :class:`Fix` at the time of the window's last reading, or a "no fix" with the reason."""
+        t = float(window.readings.t[-1]) if len(window.readings) else float("nan")
+        try:
+            surf = self.surface(window, fmap)
+        except (ValueError, FloatingPointError) as exc:  # data problems never escape as exceptions
+            return Fix.no_fix(t, f"map lookup failed: {exc}", self.name)
+        if isinstance(surf, str):
+            return Fix.no_fix(t, surf, self.name)
+        return self.decide(surf, t)
+
+    def decide(self, surf: Surface, t: float) -> Fix:
+        """Apply ML / MLR / ABL to a surface."""
+        logl = surf.logl
+        finite = np.isfinite(logl)
+        if not np.any(finite):
+            return Fix.no_fix(t, "off the map: no map values in the search window", self.name)
+        if surf.variability < (self.min_variability**2) * surf.sigma2:
+            return Fix.no_fix(
+                t,
+                f"flat map: feature variability {np.sqrt(surf.variability):.3g} below "
+                f"{self.min_variability:g} x reading sigma {np.sqrt(surf.sigma2):.3g}",
+                self.name,
+            )
+        k = int(np.argmax(logl))
+        lmax = logl[k]
+        p = np.exp(logl - lmax)
+        p /= p.sum()
+        score = float(p[k])
+        n_fix, e_fix = float(surf.n[k]), float(surf.e[k])
+        if self.method == "mlr":
+            dist2 = (surf.n - n_fix) ** 2 + (surf.e - e_fix) ** 2
+            far = finite & (dist2 >= self.min_distance_m**2)
+            log_ratio = float(lmax - logl[far].max()) if np.any(far) else np.inf
+            score = float(np.exp(min(log_ratio, 700.0)))
+            if log_ratio < np.log(self.ratio_threshold):
+                return Fix.no_fix(
+                    t, f"ambiguous: likelihood ratio {score:.3g} below {self.ratio_threshold:g}", self.name, score
+                )
+        elif self.method == "abl":
+            if p[k] < self.peak_threshold:
+                return Fix.no_fix(
+                    t, f"no distinct peak: normalised peak {p[k]:.3g} below {self.peak_threshold:g}", self.name, p[k]
+                )
+            mass = _bin_mass(p, surf, self.bin_size_m)
+            kb = int(np.argmax(mass))
+            n_fix, e_fix, score = float(surf.n[kb]), float(surf.e[kb]), float(mass[kb])
+        cov = moments_about(p, surf.n, surf.e, n_fix, e_fix) + np.eye(2) * surf.step**2 / 12.0
+        max_sig = self.max_fix_sigma_m
+        if max_sig is None:
+            max_sig = 0.25 * min(np.ptp(surf.n), np.ptp(surf.e)) if surf.shape is not None else np.inf
+        sig = float(np.sqrt(np.linalg.eigvalsh(cov)[-1]))
+        if sig > max_sig:
+            return Fix.no_fix(
+                t, f"likelihood too spread: fix sigma {sig:.3g} m above {max_sig:.3g} m", self.name, score
+            )
+        lat, lon = surf.frame.to_latlon(n_fix, e_fix)
+        return Fix(t, float(lat), float(lon), cov, True, "", score, self.name)
+
+
+def _bin_mass(p: FloatArray, surf: Surface, bin_size_m: float) -> FloatArray:
+    """Sum of normalised likelihood in a square bin of side ``bin_size_m`` centred on each candidate."""
+    if surf.shape is not None:
+        w = max(int(round(bin_size_m / surf.step)), 1)
+        grid = p.reshape(surf.shape)
+        return (ndimage.uniform_filter(grid, size=w, mode="constant") * w * w).ravel()
+    from scipy.spatial import cKDTree
+
+    pts = np.column_stack([surf.n, surf.e])
+    tree = cKDTree(pts)
+    groups = tree.query_ball_point(pts, r=bin_size_m / 2.0)
+    return np.array([p[g].sum() for g in groups])
+
+
+def _map_half_extent(fmap: FieldMap, frame: WorkFrame) -> tuple[float, float] | None:
+    """Half-extent (m) of a window about the frame origin that covers the whole map, if the map knows its extent."""
+    bounds = getattr(fmap, "bounds_latlon", None)
+    if bounds is None:
+        return None
+    lat_min, lat_max, lon_min, lon_max = (float(b) for b in (bounds() if callable(bounds) else bounds))
+    n, e = frame.to_ne(np.array([lat_min, lat_min, lat_max, lat_max]), np.array([lon_min, lon_max, lon_min, lon_max]))
+    return float(np.max(np.abs(n))), float(np.max(np.abs(e)))
+
+
+def ML(**kw: object) -> LikelihoodMatcher:
+    """Maximum likelihood matcher (Shockley 003 sec. 4.3.1)."""
+    return LikelihoodMatcher(method="ml", **kw)  # type: ignore[arg-type]
+
+
+def MLR(**kw: object) -> LikelihoodMatcher:
+    """Maximum likelihood ratio matcher (Shockley 003 sec. 4.3.2)."""
+    return LikelihoodMatcher(method="mlr", **kw)  # type: ignore[arg-type]
+
+
+def ABL(**kw: object) -> LikelihoodMatcher:
+    """Aggregate bin likelihood matcher (Shockley 003 sec. 4.3.3)."""
+    return LikelihoodMatcher(method="abl", **kw)  # type: ignore[arg-type]
