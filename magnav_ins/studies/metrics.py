@@ -1,0 +1,157 @@
+"""Study metrics: horizontal error series, NEES, fix statistics, the divergence test, aggregation over runs.
+
+Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
+
+* Horizontal error e_k (m): distance between estimate and truth at sample k
+  (:func:`magnav_ins.core.frames.horizontal_error_m`).
+* ``rms_horizontal_m`` = sqrt(mean over runs and samples of e^2); ``mean_horizontal_m`` = mean of e over runs and
+  samples; ``max_horizontal_m`` = max over runs and samples; ``final_horizontal_m`` = RMS over runs of e at the last
+  sample. All runs count, divergent ones included.
+* NEES: horizontal (2-D) normalised estimation error squared d_k^T P_ne,k^-1 d_k with d the north/east error and
+  P_ne the filter's horizontal covariance; ``nees_mean`` is its mean over runs and samples (2 for a consistent
+  filter; Bar-Shalom's NEES restricted to the horizontal position).
+* ``availability`` = fixes issued / fix attempts (Shockley sec. 4.3.2), pooled over runs.
+* Fix error bins (Shockley Figs. 4.8-4.19): fractions of issued fixes whose error is < 3 m, 3-10 m, 10-20 m,
+  >= 20 m; ``fix_within_3m_fraction`` is the first bin.
+* Divergence (Wang et al. 2022 sec. 4.3: "RMS position error becomes increasingly large over time without
+  apparent bound"). Stated test, :func:`is_divergent`: a run diverges when, over the last quarter of the run, its
+  mean horizontal error is more than ``growth`` (2) times its mean error over the second quarter (the error keeps
+  growing instead of settling) AND more than ``fraction_of_free`` (0.5) times the free-inertial mean error of the
+  same run over the same last quarter (the aiding has lost at least half of its benefit). The free-inertial
+  baseline itself is tested against itself, so it "diverges" whenever its error doubles between the quarters.
+  ``divergence_rate`` is the fraction of runs that diverge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..core.frames import horizontal_error_m, latlon_to_meters, wrap_angle
+
+FIX_BIN_EDGES_M = (3.0, 10.0, 20.0)
+FIX_BIN_NAMES = ("lt_3m", "3_to_10m", "10_to_20m", "ge_20m")
+DIVERGENCE_GROWTH = 2.0
+DIVERGENCE_FRACTION_OF_FREE = 0.5
+
+
+def horizontal_errors(lat: ArrayLike, lon: ArrayLike, lat_true: ArrayLike, lon_true: ArrayLike) -> NDArray[np.float64]:
+    """Horizontal error (m) per sample between estimate and truth (rad)."""
+    return horizontal_error_m(lat, lon, lat_true, lon_true)
+
+
+def ne_errors(
+    lat: ArrayLike, lon: ArrayLike, lat_true: ArrayLike, lon_true: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """North and east errors (m), estimate minus truth (rad inputs), local-tangent approximation."""
+    lat_true = np.asarray(lat_true, float)
+    dn, de = latlon_to_meters(np.asarray(lat) - lat_true, wrap_angle(np.asarray(lon) - lon_true), lat_true)
+    return np.asarray(dn, float), np.asarray(de, float)
+
+
+def nees_ne(d_n: ArrayLike, d_e: ArrayLike, cov_ne: ArrayLike) -> NDArray[np.float64]:
+    """Horizontal NEES d^T P^-1 d per sample: ``d_n``, ``d_e`` (N,) m, ``cov_ne`` (N,2,2) m^2. NaN where P is
+    not positive definite or missing."""
+    d = np.stack([np.asarray(d_n, float), np.asarray(d_e, float)], axis=-1)
+    P = np.asarray(cov_ne, float)
+    a, b, c = P[..., 0, 0], 0.5 * (P[..., 0, 1] + P[..., 1, 0]), P[..., 1, 1]
+    det = a * c - b * b
+    ok = (a > 0) & (det > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = (c * d[..., 0] ** 2 - 2 * b * d[..., 0] * d[..., 1] + a * d[..., 1] ** 2) / det
+    return np.where(ok, q, np.nan)
+
+
+def sigma_h_m(cov_ne: ArrayLike) -> NDArray[np.float64]:
+    """Horizontal 1-sigma (m): sqrt(trace(P_ne)) per sample (DRMS)."""
+    P = np.asarray(cov_ne, float)
+    return np.sqrt(np.maximum(P[..., 0, 0] + P[..., 1, 1], 0.0))
+
+
+def quarter_means(e: ArrayLike) -> NDArray[np.float64]:
+    """Mean of ``e`` over each quarter of its samples (4,), ignoring NaN."""
+    e = np.asarray(e, float)
+    parts = np.array_split(e, 4)
+    return np.array([np.nanmean(p) if np.isfinite(p).any() else np.nan for p in parts])
+
+
+def is_divergent(
+    e: ArrayLike,
+    e_free: ArrayLike,
+    growth: float = DIVERGENCE_GROWTH,
+    fraction_of_free: float = DIVERGENCE_FRACTION_OF_FREE,
+) -> bool:
+    """The divergence test of the module docstring: ``e`` the run's horizontal error series (m), ``e_free`` the
+    free-inertial error of the same run on the same samples (m). A run with non-finite errors (the estimator
+    blew up) is divergent."""
+    e = np.asarray(e, float)
+    if e.size < 4:
+        return False
+    if not np.all(np.isfinite(e)):
+        return True
+    q = quarter_means(e)
+    qf = quarter_means(e_free)
+    return bool(q[3] > growth * q[1] and q[3] > fraction_of_free * qf[3])
+
+
+def fix_error_bins(fix_errors_m: ArrayLike) -> dict[str, float]:
+    """Fractions of fixes per error bin (< 3, 3-10, 10-20, >= 20 m); NaN fractions when there are no fixes."""
+    e = np.asarray(fix_errors_m, float)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return dict.fromkeys(FIX_BIN_NAMES, float("nan"))
+    idx = np.searchsorted(np.asarray(FIX_BIN_EDGES_M), e, side="right")
+    counts = np.bincount(idx, minlength=len(FIX_BIN_NAMES))
+    return {n: float(c) / e.size for n, c in zip(FIX_BIN_NAMES, counts, strict=True)}
+
+
+@dataclass
+class RunMetrics:
+    """One estimator in one run: the error series (m) on the study's common time base, the filter's horizontal
+    NEES series (NaN without covariance), fix errors (m) of issued fixes, fix attempts, and the divergence flag."""
+
+    e: NDArray[np.float64]
+    nees: NDArray[np.float64]
+    fix_errors_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    fix_attempts: int = 0
+    divergent: bool = False
+
+
+def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[str, Any]:
+    """Pool one estimator's runs into the ``metrics.json`` entry (keys as in ``shared/DESIGN.md``)."""
+    E = np.stack([r.e for r in runs])  # (R, N)
+    fin = np.isfinite(E)
+    e_all = E[fin]
+    nees = np.concatenate([r.nees for r in runs]) if runs else np.zeros(0)
+    nees = nees[np.isfinite(nees)]
+    fix_e = np.concatenate([r.fix_errors_m for r in runs]) if runs else np.zeros(0)
+    attempts = sum(r.fix_attempts for r in runs)
+    issued = int(np.isfinite(fix_e).sum())
+    bins = fix_error_bins(fix_e)
+    final = E[:, -1]
+    out: dict[str, Any] = {
+        "matcher": matcher,
+        "fusion": fusion,
+        "rms_horizontal_m": _f(np.sqrt(np.mean(e_all**2))) if e_all.size else None,
+        "mean_horizontal_m": _f(np.mean(e_all)) if e_all.size else None,
+        "max_horizontal_m": _f(np.max(e_all)) if e_all.size else None,
+        "final_horizontal_m": _f(np.sqrt(np.nanmean(final**2))) if np.isfinite(final).any() else None,
+        "divergence_rate": float(np.mean([r.divergent for r in runs])) if runs else None,
+        "availability": (issued / attempts) if attempts else None,
+        "fix_attempts": int(attempts),
+        "fixes_issued": issued,
+        "nees_mean": _f(np.mean(nees)) if nees.size else None,
+        "fix_error_bins": {k: _f(v) for k, v in bins.items()},
+        "fix_within_3m_fraction": _f(bins["lt_3m"]),
+        "non_finite_fraction": float(1.0 - fin.mean()) if E.size else 0.0,
+    }
+    return out
+
+
+def _f(x: Any) -> float | None:
+    """JSON-safe float: NaN/inf -> None."""
+    x = float(x)
+    return x if np.isfinite(x) else None

@@ -1,0 +1,470 @@
+"""Scenario files: TOML -> validated, frozen configuration dataclasses (schema in ``shared/DESIGN.md``).
+
+Every mistake raises :class:`~magnav_ins.core.errors.ConfigError` naming the file, the line, the key and what was
+expected: unknown keys, missing keys, wrong types, out-of-range values (units are in the key names: ``_m``, ``_s``,
+``_deg``, ``_hz``, ``_mps``), and files that do not exist.
+
+Line numbers. :mod:`tomllib` gives none for a well-formed file, so :func:`locate_keys` scans the text lightly: it
+tracks the current table header (``[a.b]``, and ``[[a]]`` with a per-array counter) and records every
+``key = ...`` that starts a line (bare, quoted or dotted keys), plus the keys of an inline table ``{k = v, ...}`` on
+that line (they share its line). Keys inside multi-line arrays are not needed by the schema and are not scanned. A
+missing key is reported at its table's header line. Syntax errors come from tomllib, which names the line itself.
+
+Relative paths in the file resolve against the scenario file's directory. ``builtin:NAME`` (shipped maps and
+surveys) and ``synthetic:NAME`` (generated maps) are passed through unresolved.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..core.errors import ConfigError
+from ..core.types import FieldKind
+
+#: IMU grades understood by ``ins.imu_models.get_grade`` (Storms Table 2.2; Wang Table 1)
+IMU_GRADES = ("consumer", "commercial", "tactical", "navigation", "precision", "quantum")
+TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file")
+SENSOR_KINDS = {
+    "gravimeter": FieldKind.GRAVITY_DISTURBANCE_MGAL,
+    "scalar_magnetometer": FieldKind.TOTAL_FIELD_ANOMALY_NT,
+    "vector_magnetometer": FieldKind.VECTOR_FIELD_NT,
+}
+SENSOR_SOURCES = ("simulated", "survey")
+#: name reserved for the free-inertial baseline that every study adds
+FREE_INERTIAL = "free_inertial"
+#: specs that are not file paths
+SPEC_PREFIXES = ("builtin:", "synthetic:")
+
+
+# --------------------------------------------------------------------------------------------- line scan
+_HEADER = re.compile(r"^\s*(\[\[?)\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
+_KEY = re.compile(r"""^\s*((?:[A-Za-z0-9_-]+|"[^"]*"|'[^']*')(?:\s*\.\s*(?:[A-Za-z0-9_-]+|"[^"]*"|'[^']*'))*)\s*=""")
+_INLINE_KEY = re.compile(r"""[{,]\s*([A-Za-z0-9_-]+|"[^"]*"|'[^']*')\s*=""")
+
+
+def _unquote(part: str) -> str:
+    part = part.strip()
+    return part[1:-1] if len(part) >= 2 and part[0] == part[-1] and part[0] in "\"'" else part
+
+
+def _split_dotted(key: str) -> list[str]:
+    return [_unquote(p) for p in re.findall(r"""[A-Za-z0-9_-]+|"[^"]*"|'[^']*'""", key)]
+
+
+def locate_keys(text: str) -> dict[str, int]:
+    """Map dotted key paths (``"trajectory.speed_mps"``, ``"estimator[1].matcher.batch"``) and table headers
+    (``"trajectory"``, ``"estimator[0]"``) to 1-based line numbers in the TOML ``text``. See the module docstring."""
+    lines: dict[str, int] = {}
+    prefix = ""
+    array_counts: dict[str, int] = {}
+    depth = 0  # bracket depth of a multi-line value: keys inside are not scanned
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw
+        if depth == 0:
+            m = _HEADER.match(line)
+            if m:
+                name = ".".join(_split_dotted(m.group(2)))
+                if m.group(1) == "[[":
+                    idx = array_counts.get(name, 0)
+                    array_counts[name] = idx + 1
+                    prefix = f"{name}[{idx}]"
+                else:
+                    prefix = name
+                lines.setdefault(prefix, n)
+                continue
+            m = _KEY.match(line)
+            if m:
+                key = ".".join(_split_dotted(m.group(1)))
+                full = f"{prefix}.{key}" if prefix else key
+                lines.setdefault(full, n)
+                rest = line[m.end() :]
+                if rest.lstrip().startswith("{"):
+                    for k in _INLINE_KEY.findall(rest):
+                        lines.setdefault(f"{full}.{_unquote(k)}", n)
+        stripped = re.sub(r'"[^"]*"|\'[^\']*\'', "", line).split("#", 1)[0]
+        depth = max(0, depth + stripped.count("[") + stripped.count("{") - stripped.count("]") - stripped.count("}"))
+        if _HEADER.match(line):
+            depth = 0
+    return lines
+
+
+# --------------------------------------------------------------------------------------------- config types
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    """Truth trajectory. Positions in degrees as written (converted to rad where the trajectory is built).
+
+    ``kind``: ``great_circle`` (``start``, ``end`` [lat, lon] deg, ``altitude_m``, ``speed_mps``), ``waypoints``
+    (``points`` [[lat, lon], ...] deg, ``altitude_m``, ``speed_mps``), ``survey_line`` (``survey`` path or
+    ``builtin:NAME``, ``line`` id, ``speed_mps``; altitude from the survey), ``file`` (``path`` CSV).
+    ``duration_s`` (optional) truncates the trajectory.
+    """
+
+    kind: str
+    start_deg: tuple[float, float] | None = None
+    end_deg: tuple[float, float] | None = None
+    points_deg: tuple[tuple[float, float], ...] | None = None
+    altitude_m: float | None = None
+    speed_mps: float | None = None
+    survey: str | None = None
+    line: int | None = None
+    path: str | None = None
+    duration_s: float | None = None
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """IMU grade (``IMU_GRADES``) and sample rate (Hz) of the simulated IMU and of the INS."""
+
+    grade: str
+    rate_hz: float = 100.0
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    """1-sigma initial INS errors drawn per run (the same draw for every estimator and the baseline).
+    Defaults: a tactical INS that has just lost GNSS (DESIGN.md)."""
+
+    position_sigma_m: float = 10.0
+    velocity_sigma_mps: float = 0.1
+    attitude_sigma_deg: tuple[float, float, float] = (0.02, 0.02, 0.2)  # roll, pitch, yaw
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Map spec: a NetCDF path, ``builtin:NAME``, ``synthetic:NAME`` or a survey CSV(.xz) gridded on load
+    (``grid_spacing_m``, ``exclude_lines``). ``kind`` is a :class:`FieldKind` value. ``options`` holds extra
+    keys for synthetic maps (e.g. ``seed``)."""
+
+    path: str
+    kind: FieldKind
+    grid_spacing_m: float | None = None
+    exclude_lines: tuple[int, ...] = ()
+    options: dict[str, Any] = field(default_factory=dict, compare=False)
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Field sensor: ``kind`` (``SENSOR_KINDS``), 1-sigma noise ``sigma`` in the map's unit, ``interval_s``
+    between readings, ``source`` = ``simulated`` (map value at the truth + noise) or ``survey`` (real readings
+    along the survey line, resampled to the trajectory)."""
+
+    kind: str
+    sigma: float
+    interval_s: float
+    source: str = "simulated"
+
+    @property
+    def field_kind(self) -> FieldKind:
+        return SENSOR_KINDS[self.kind]
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """One estimator: a matcher spec (``{"kind": ..., params}``) and a fusion spec (``{"kind": "ukf"|...}``)."""
+
+    name: str
+    matcher: dict[str, Any] = field(compare=False)
+    fusion: dict[str, Any] = field(compare=False)
+
+    @property
+    def matcher_kind(self) -> str:
+        return str(self.matcher["kind"])
+
+    @property
+    def fusion_kind(self) -> str:
+        return str(self.fusion["kind"])
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A validated scenario. ``source`` is the file it came from (None when built from a dict); ``lines`` maps
+    key paths to line numbers so later stages (building matchers, loading maps) can name the line too."""
+
+    name: str
+    seed: int
+    runs: int
+    trajectory: TrajectoryConfig
+    imu: ImuConfig
+    init: InitConfig
+    map: MapConfig
+    sensor: SensorConfig
+    estimators: tuple[EstimatorConfig, ...]
+    description: str = ""
+    source: Path | None = field(default=None, compare=False)
+    lines: dict[str, int] = field(default_factory=dict, compare=False, repr=False)
+
+    def where(self, key: str) -> str:
+        """``"file.toml line 12 'key'"``-style prefix for error messages about ``key``."""
+        return _Ctx(self.source, self.lines).where(key)
+
+
+# --------------------------------------------------------------------------------------------- validation
+class _Ctx:
+    def __init__(self, source: Path | None, lines: dict[str, int]):
+        self.source = source
+        self.lines = lines
+
+    def line_of(self, key: str) -> int | None:
+        k = key
+        while k:
+            if k in self.lines:
+                return self.lines[k]
+            k = k.rsplit(".", 1)[0] if "." in k else ""
+        return None
+
+    def where(self, key: str) -> str:
+        parts = [str(self.source) if self.source else "<scenario>"]
+        n = self.line_of(key)
+        if n is not None:
+            parts.append(f"line {n}")
+        return " ".join(parts) + f": '{key}'"
+
+    def error(self, key: str, msg: str) -> ConfigError:
+        return ConfigError(f"{self.where(key)}: {msg}")
+
+
+def _table(ctx: _Ctx, data: dict[str, Any], key: str, required: bool = True) -> dict[str, Any] | None:
+    if key not in data:
+        if required:
+            src = str(ctx.source) if ctx.source else "<scenario>"
+            raise ConfigError(f"{src}: missing table [{key}] (required)")
+        return None
+    val = data[key]
+    if not isinstance(val, dict):
+        raise ctx.error(key, f"expected a table [{key}], got {type(val).__name__}")
+    return val
+
+
+def _check_keys(ctx: _Ctx, prefix: str, table: dict[str, Any], allowed: set[str], required: set[str]) -> None:
+    for k in table:
+        if k not in allowed:
+            raise ctx.error(
+                f"{prefix}.{k}" if prefix else k, f"unknown key (expected one of: {', '.join(sorted(allowed))})"
+            )
+    for k in sorted(required):
+        if k not in table:
+            where = f"{ctx.source or '<scenario>'}"
+            n = ctx.line_of(prefix) if prefix else None
+            loc = f"{where} line {n}" if n is not None else where
+            table_name = f"[{prefix}]" if prefix else "the top level"
+            raise ConfigError(f"{loc}: missing key '{prefix + '.' if prefix else ''}{k}' in {table_name} (required)")
+
+
+def _number(ctx: _Ctx, key: str, v: Any, *, positive: bool = False, nonneg: bool = False) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ctx.error(key, f"expected a number, got {type(v).__name__} {v!r}")
+    x = float(v)
+    if not math.isfinite(x):
+        raise ctx.error(key, f"expected a finite number, got {v!r}")
+    if positive and x <= 0:
+        raise ctx.error(key, f"expected a positive number, got {v!r}")
+    if nonneg and x < 0:
+        raise ctx.error(key, f"expected a number >= 0, got {v!r}")
+    return x
+
+
+def _int(ctx: _Ctx, key: str, v: Any, *, minimum: int | None = None) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ctx.error(key, f"expected an integer, got {type(v).__name__} {v!r}")
+    if minimum is not None and v < minimum:
+        raise ctx.error(key, f"expected an integer >= {minimum}, got {v}")
+    return int(v)
+
+
+def _str(ctx: _Ctx, key: str, v: Any, choices: tuple[str, ...] | None = None) -> str:
+    if not isinstance(v, str):
+        raise ctx.error(key, f"expected a string, got {type(v).__name__} {v!r}")
+    if choices is not None and v not in choices:
+        raise ctx.error(key, f"expected one of {', '.join(choices)}; got {v!r}")
+    return v
+
+
+def _latlon(ctx: _Ctx, key: str, v: Any) -> tuple[float, float]:
+    if not isinstance(v, list) or len(v) != 2:
+        raise ctx.error(key, f"expected [latitude_deg, longitude_deg], got {v!r}")
+    lat = _number(ctx, key, v[0])
+    lon = _number(ctx, key, v[1])
+    if not -90.0 <= lat <= 90.0:
+        raise ctx.error(key, f"latitude must be within [-90, 90] degrees, got {lat}")
+    if not -180.0 <= lon <= 360.0:
+        raise ctx.error(key, f"longitude must be within [-180, 360] degrees, got {lon}")
+    return lat, lon
+
+
+def _path(ctx: _Ctx, key: str, v: Any, base: Path, *, allow_spec: bool = True) -> str:
+    s = _str(ctx, key, v)
+    if allow_spec and s.startswith(SPEC_PREFIXES):
+        return s
+    p = Path(s).expanduser()
+    if not p.is_absolute():
+        p = base / p
+    if not p.exists():
+        raise ctx.error(key, f"file does not exist: {p}")
+    return str(p)
+
+
+_TRAJ_KEYS = {
+    "great_circle": ({"start", "end", "altitude_m", "speed_mps"}, set()),
+    "waypoints": ({"points", "altitude_m", "speed_mps"}, set()),
+    "survey_line": ({"survey", "line", "speed_mps"}, set()),
+    "file": ({"path"}, set()),
+}
+
+
+def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
+    if "kind" not in t:
+        _check_keys(ctx, "trajectory", t, set(t) | {"kind"}, {"kind"})
+    kind = _str(ctx, "trajectory.kind", t["kind"], TRAJECTORY_KINDS)
+    required, optional = _TRAJ_KEYS[kind]
+    _check_keys(ctx, "trajectory", t, required | optional | {"kind", "duration_s"}, required)
+    kw: dict[str, Any] = {"kind": kind}
+    if "duration_s" in t:
+        kw["duration_s"] = _number(ctx, "trajectory.duration_s", t["duration_s"], positive=True)
+    if "speed_mps" in t:
+        kw["speed_mps"] = _number(ctx, "trajectory.speed_mps", t["speed_mps"], positive=True)
+    if "altitude_m" in t:
+        kw["altitude_m"] = _number(ctx, "trajectory.altitude_m", t["altitude_m"])
+    if kind == "great_circle":
+        kw["start_deg"] = _latlon(ctx, "trajectory.start", t["start"])
+        kw["end_deg"] = _latlon(ctx, "trajectory.end", t["end"])
+        if kw["start_deg"] == kw["end_deg"]:
+            raise ctx.error("trajectory.end", "end must differ from start")
+    elif kind == "waypoints":
+        pts = t["points"]
+        if not isinstance(pts, list) or len(pts) < 2:
+            raise ctx.error("trajectory.points", f"expected at least two [lat, lon] points, got {pts!r}")
+        kw["points_deg"] = tuple(_latlon(ctx, "trajectory.points", p) for p in pts)
+    elif kind == "survey_line":
+        kw["survey"] = _path(ctx, "trajectory.survey", t["survey"], base)
+        kw["line"] = _int(ctx, "trajectory.line", t["line"])
+    else:
+        kw["path"] = _path(ctx, "trajectory.path", t["path"], base, allow_spec=False)
+    return TrajectoryConfig(**kw)
+
+
+def _imu(ctx: _Ctx, t: dict[str, Any]) -> ImuConfig:
+    _check_keys(ctx, "imu", t, {"grade", "rate_hz"}, {"grade"})
+    grade = _str(ctx, "imu.grade", t["grade"], IMU_GRADES)
+    rate = _number(ctx, "imu.rate_hz", t.get("rate_hz", 100.0), positive=True)
+    return ImuConfig(grade, rate)
+
+
+def _init(ctx: _Ctx, t: dict[str, Any] | None) -> InitConfig:
+    if t is None:
+        return InitConfig()
+    _check_keys(ctx, "init", t, {"position_sigma_m", "velocity_sigma_mps", "attitude_sigma_deg"}, set())
+    d = InitConfig()
+    pos = _number(ctx, "init.position_sigma_m", t.get("position_sigma_m", d.position_sigma_m), nonneg=True)
+    vel = _number(ctx, "init.velocity_sigma_mps", t.get("velocity_sigma_mps", d.velocity_sigma_mps), nonneg=True)
+    att = t.get("attitude_sigma_deg", list(d.attitude_sigma_deg))
+    if not isinstance(att, list) or len(att) != 3:
+        raise ctx.error("init.attitude_sigma_deg", f"expected [roll, pitch, yaw] in degrees, got {att!r}")
+    att_t = tuple(_number(ctx, "init.attitude_sigma_deg", a, nonneg=True) for a in att)
+    return InitConfig(pos, vel, att_t)  # type: ignore[arg-type]
+
+
+def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
+    _check_keys(ctx, "map", t, {"path", "kind", "grid_spacing_m", "exclude_lines", "options"}, {"path", "kind"})
+    path = _path(ctx, "map.path", t["path"], base)
+    kind_s = _str(ctx, "map.kind", t["kind"], tuple(k.value for k in FieldKind))
+    spacing = None
+    if "grid_spacing_m" in t:
+        spacing = _number(ctx, "map.grid_spacing_m", t["grid_spacing_m"], positive=True)
+    excl = t.get("exclude_lines", [])
+    if not isinstance(excl, list):
+        raise ctx.error("map.exclude_lines", f"expected a list of line ids, got {excl!r}")
+    excl_t = tuple(_int(ctx, "map.exclude_lines", x) for x in excl)
+    opts = t.get("options", {})
+    if not isinstance(opts, dict):
+        raise ctx.error("map.options", f"expected a table, got {opts!r}")
+    return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts))
+
+
+def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfig) -> SensorConfig:
+    _check_keys(ctx, "sensor", t, {"kind", "sigma", "interval_s", "source"}, {"kind", "sigma", "interval_s"})
+    kind = _str(ctx, "sensor.kind", t["kind"], tuple(SENSOR_KINDS))
+    if SENSOR_KINDS[kind] is not fmap.kind:
+        raise ctx.error(
+            "sensor.kind", f"a {kind} measures {SENSOR_KINDS[kind].value} but [map] kind is {fmap.kind.value}"
+        )
+    sigma = _number(ctx, "sensor.sigma", t["sigma"], positive=True)
+    interval = _number(ctx, "sensor.interval_s", t["interval_s"], positive=True)
+    source = _str(ctx, "sensor.source", t.get("source", "simulated"), SENSOR_SOURCES)
+    if source == "survey" and traj.kind != "survey_line":
+        raise ctx.error(
+            "sensor.source", f"source = 'survey' needs [trajectory] kind = 'survey_line', got {traj.kind!r}"
+        )
+    return SensorConfig(kind, sigma, interval, source)
+
+
+def _spec(ctx: _Ctx, key: str, v: Any) -> dict[str, Any]:
+    if not isinstance(v, dict):
+        raise ctx.error(key, f'expected a table like {{ kind = "...", ... }}, got {v!r}')
+    if "kind" not in v:
+        raise ctx.error(key, "missing key 'kind'")
+    _str(ctx, f"{key}.kind", v["kind"])
+    return dict(v)
+
+
+def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
+    ests = data.get("estimator", [])
+    if not isinstance(ests, list):
+        raise ctx.error("estimator", "expected one or more [[estimator]] tables")
+    out: list[EstimatorConfig] = []
+    seen: set[str] = set()
+    for i, e in enumerate(ests):
+        p = f"estimator[{i}]"
+        if not isinstance(e, dict):
+            raise ctx.error(p, "expected an [[estimator]] table")
+        _check_keys(ctx, p, e, {"name", "matcher", "fusion"}, {"name", "matcher", "fusion"})
+        name = _str(ctx, f"{p}.name", e["name"])
+        if not name or name == FREE_INERTIAL:
+            raise ctx.error(f"{p}.name", f"{name!r} is reserved or empty; the {FREE_INERTIAL} baseline is always added")
+        if name in seen:
+            raise ctx.error(f"{p}.name", f"duplicate estimator name {name!r}")
+        seen.add(name)
+        out.append(
+            EstimatorConfig(name, _spec(ctx, f"{p}.matcher", e["matcher"]), _spec(ctx, f"{p}.fusion", e["fusion"]))
+        )
+    return tuple(out)
+
+
+_TOP_KEYS = {"name", "description", "seed", "runs", "trajectory", "imu", "init", "map", "sensor", "estimator"}
+
+
+def scenario_from_dict(
+    data: dict[str, Any], source: Path | None = None, lines: dict[str, int] | None = None
+) -> Scenario:
+    """Validate a parsed scenario (the dict tomllib returns). Relative paths resolve against ``source``'s folder."""
+    ctx = _Ctx(source, lines or {})
+    base = source.parent if source is not None else Path.cwd()
+    _check_keys(ctx, "", data, _TOP_KEYS, {"name", "trajectory", "imu", "map", "sensor"})
+    name = _str(ctx, "name", data["name"])
+    description = _str(ctx, "description", data.get("description", ""))
+    seed = _int(ctx, "seed", data.get("seed", 0), minimum=0)
+    runs = _int(ctx, "runs", data.get("runs", 1), minimum=1)
+    traj = _trajectory(ctx, _table(ctx, data, "trajectory"), base)  # type: ignore[arg-type]
+    imu = _imu(ctx, _table(ctx, data, "imu"))  # type: ignore[arg-type]
+    init = _init(ctx, _table(ctx, data, "init", required=False))
+    fmap = _map(ctx, _table(ctx, data, "map"), base)  # type: ignore[arg-type]
+    sensor = _sensor(ctx, _table(ctx, data, "sensor"), fmap, traj)  # type: ignore[arg-type]
+    ests = _estimators(ctx, data)
+    return Scenario(name, seed, runs, traj, imu, init, fmap, sensor, ests, description, source, dict(ctx.lines))
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read and validate a scenario TOML file. Raises :class:`ConfigError` naming the file, line and key."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: scenario file does not exist")
+    text = path.read_text(encoding="utf-8")
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return scenario_from_dict(data, path.resolve(), locate_keys(text))
