@@ -289,7 +289,7 @@ def runs_dataset(summaries: list[RunSummary], scenario_name: str = ""):
 
     names = list(summaries[0].estimators)
     s0 = summaries[0]
-    R, E, N = len(summaries), len(names), len(s0.t)
+    R, E = len(summaries), len(names)
     K = max((len(s.estimators[n].fix_t) for s in summaries for n in names), default=0)
 
     def stack(attr: str, dtype=np.float32) -> NDArray:

@@ -1,0 +1,154 @@
+"""Scenario validation: errors name the key and its line; defaults; path resolution; the shipped examples."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from magnav_ins.core.errors import ConfigError
+from magnav_ins.core.types import FieldKind
+from magnav_ins.studies.scenario import load_scenario, locate_keys
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
+
+GOOD = """\
+name = "tiny"
+seed = 3
+runs = 2
+
+[trajectory]
+kind = "great_circle"
+start = [-38.0, 144.5]
+end = [-37.9, 144.6]
+altitude_m = 100.0
+speed_mps = 22.0
+duration_s = 60.0
+
+[imu]
+grade = "tactical"
+rate_hz = 50.0
+
+[map]
+path = "synthetic:random_field"
+kind = "gravity_disturbance_mgal"
+
+[sensor]
+kind = "gravimeter"
+sigma = 1.0
+interval_s = 10.0
+
+[[estimator]]
+name = "ml+ukf"
+matcher = { kind = "ml", window = 5 }
+fusion = { kind = "ukf" }
+
+[[estimator]]
+name = "pmht"
+matcher = { kind = "pmht", batch = 30 }
+fusion = { kind = "ukf" }
+"""
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    return p
+
+
+def _line_of(text: str, needle: str) -> int:
+    return next(i for i, line in enumerate(text.splitlines(), 1) if needle in line)
+
+
+def test_good_scenario_and_defaults(tmp_path):
+    sc = load_scenario(_write(tmp_path, GOOD))
+    assert sc.name == "tiny" and sc.seed == 3 and sc.runs == 2
+    assert sc.trajectory.start_deg == (-38.0, 144.5) and sc.trajectory.duration_s == 60.0
+    assert sc.imu.grade == "tactical" and sc.imu.rate_hz == 50.0
+    assert sc.init.position_sigma_m == 10.0 and sc.init.attitude_sigma_deg == (0.02, 0.02, 0.2)  # DESIGN defaults
+    assert sc.map.kind is FieldKind.GRAVITY_DISTURBANCE_MGAL
+    assert [e.name for e in sc.estimators] == ["ml+ukf", "pmht"]
+    assert sc.estimators[1].matcher == {"kind": "pmht", "batch": 30}
+    assert sc.lines["estimator[1].matcher.batch"] == _line_of(GOOD, "batch = 30")
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key", "needle"),
+    [
+        ("speed_mps = 22.0", "sped_mps = 22.0", "trajectory.sped_mps", "sped_mps"),  # unknown key
+        ('grade = "tactical"', "grade = 3", "imu.grade", "grade = 3"),  # wrong type
+        ("sigma = 1.0", 'sigma = "1 mGal"', "sensor.sigma", "sigma = "),  # units in the value, not the key
+        ("sigma = 1.0", "sigma = -1.0", "sensor.sigma", "sigma = "),  # out of range
+        ("batch = 30 }", "batch = 30, bogus = 1 }\ncolour = 2", "estimator[1].colour", "colour = 2"),
+        ("rate_hz = 50.0", "rate_hz = 50.0\nrate_ft = 2", "imu.rate_ft", "rate_ft"),
+        ("start = [-38.0, 144.5]", "start = [-138.0, 144.5]", "trajectory.start", "start = "),
+        ('kind = "gravimeter"', 'kind = "scalar_magnetometer"', "sensor.kind", "scalar_magnetometer"),
+    ],
+)
+def test_errors_name_key_and_line(tmp_path, old, new, key, needle):
+    text = GOOD.replace(old, new, 1)
+    with pytest.raises(ConfigError) as ei:
+        load_scenario(_write(tmp_path, text))
+    msg = str(ei.value)
+    assert f"'{key}'" in msg, msg
+    assert f"line {_line_of(text, needle)}" in msg, msg
+    assert "s.toml" in msg
+
+
+def test_missing_key_names_key_and_table_line(tmp_path):
+    text = GOOD.replace("speed_mps = 22.0\n", "")
+    with pytest.raises(ConfigError) as ei:
+        load_scenario(_write(tmp_path, text))
+    msg = str(ei.value)
+    assert "trajectory.speed_mps" in msg and "missing" in msg
+    assert f"line {_line_of(text, '[trajectory]')}" in msg
+
+
+def test_missing_file_names_key_and_line(tmp_path):
+    text = GOOD.replace('"synthetic:random_field"', '"no_such_map.nc"')
+    with pytest.raises(ConfigError) as ei:
+        load_scenario(_write(tmp_path, text))
+    msg = str(ei.value)
+    assert "'map.path'" in msg and f"line {_line_of(text, 'no_such_map')}" in msg
+    assert str(tmp_path / "no_such_map.nc") in msg  # resolved against the scenario's folder
+
+
+def test_relative_path_resolves_against_scenario_dir(tmp_path):
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "maps" / "m.nc").write_bytes(b"")
+    sc = load_scenario(_write(tmp_path, GOOD.replace('"synthetic:random_field"', '"maps/m.nc"')))
+    assert Path(sc.map.path) == (tmp_path / "maps" / "m.nc").resolve()
+
+
+def test_missing_scenario_file_and_bad_toml(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_scenario(tmp_path / "nope.toml")
+    with pytest.raises(ConfigError, match=r"line 2"):
+        load_scenario(_write(tmp_path, 'name = "x"\nruns = = 2\n'))
+
+
+def test_reserved_and_duplicate_names(tmp_path):
+    with pytest.raises(ConfigError, match=r"line \d+.*reserved"):
+        load_scenario(_write(tmp_path, GOOD.replace('name = "pmht"', 'name = "free_inertial"')))
+    with pytest.raises(ConfigError, match="duplicate"):
+        load_scenario(_write(tmp_path, GOOD.replace('name = "pmht"', 'name = "ml+ukf"')))
+
+
+def test_locate_keys_scan():
+    text = 'a = 1\n[t]  # comment [x]\nb = "[not a header]"\nc = [\n  1,\n  2,\n]\n"q k" = 2\n[[e]]\nm = { kind = "x", n = 2 }\n[[e]]\nm = 1\n'
+    lines = locate_keys(text)
+    assert lines["a"] == 1 and lines["t"] == 2 and lines["t.b"] == 3 and lines["t.c"] == 4
+    assert lines["t.q k"] == 8
+    assert lines["e[0]"] == 9 and lines["e[0].m.kind"] == 10 and lines["e[0].m.n"] == 10 and lines["e[1].m"] == 12
+
+
+@pytest.mark.parametrize("path", sorted(EXAMPLES.glob("*.toml")), ids=lambda p: p.name)
+def test_examples_validate(path):
+    if (
+        re.search(r"fatiando|\.\./\.\./\.\./shared", path.read_text())
+        and not (Path(__file__).resolve().parents[2] / "shared" / "data").is_dir()
+    ):
+        pytest.skip("needs ../shared/data")
+    sc = load_scenario(path)
+    assert sc.estimators or "drift" in path.name
