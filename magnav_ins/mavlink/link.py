@@ -1,0 +1,622 @@
+"""The one module that imports pymavlink: a MAVLink link speaking SI on its public face.
+
+Everything MAVLink-specific stays here: degE7 latitudes, millimetre altitudes, ``time_usec``, scaled IMU units
+(mG, mrad/s, mgauss), the magnetometer scale quirk of ArduPilot's HIGHRES_IMU, message ids, signing. The bridge and the
+autopilot emulator both use :class:`MavLink` and receive plain dataclasses (:class:`ImuMessage`, ...).
+
+Frames: MAVLink IMU messages are body FRD (x forward, y right, z down), the same as ours; accelerations are specific
+force (about -9.81 m/s^2 on z at rest). Magnetometer values are returned in nT.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import select
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+os.environ.setdefault("MAVLINK20", "1")  # MAVLink 2 framing (needed for signing and message ids > 255)
+
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2  # noqa: E402
+
+from ..core.errors import InputError, LinkError  # noqa: E402
+from ..core.units import G0, NT_PER_GAUSS  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+DEG_E7 = 1e7  #: MAVLink integer latitude/longitude unit, 1e-7 deg
+GPS_EPOCH_UNIX_S = 315964800.0  #: 1980-01-06T00:00:00Z as a Unix time
+GPS_MINUS_UTC_S = 18.0  #: leap seconds between GPS time and UTC (since 2017)
+SECONDS_PER_WEEK = 604800.0
+
+MAV_TYPE_ONBOARD_CONTROLLER = mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
+MAV_COMP_ID_ONBOARD_COMPUTER = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
+MAV_FRAME_LOCAL_FRD = mavlink2.MAV_FRAME_LOCAL_FRD
+MAV_FRAME_BODY_FRD = mavlink2.MAV_FRAME_BODY_FRD
+
+#: message ids the bridge asks the autopilot for with SET_MESSAGE_INTERVAL
+MSG_ID = {
+    "HIGHRES_IMU": mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU,
+    "RAW_IMU": mavlink2.MAVLINK_MSG_ID_RAW_IMU,
+    "SCALED_IMU": mavlink2.MAVLINK_MSG_ID_SCALED_IMU,
+    "ATTITUDE": mavlink2.MAVLINK_MSG_ID_ATTITUDE,
+    "GLOBAL_POSITION_INT": mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+    "SCALED_PRESSURE": mavlink2.MAVLINK_MSG_ID_SCALED_PRESSURE,
+}
+
+SEVERITY = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 4, "notice": 5, "info": 6, "debug": 7}
+GLOBAL_POSITION_SOURCE = {"magnetic": mavlink2.GLOBAL_POSITION_SRC_MAGNETIC, "terrain": mavlink2.GLOBAL_POSITION_SRC_TERRAIN}
+GLOBAL_POSITION_UNHEALTHY = 1
+GLOBAL_POSITION_PRIMARY = 2
+
+MILLI_G_TO_MPS2 = G0 / 1000.0
+MILLIRAD_TO_RAD = 1e-3
+
+
+# --- what the link hands to its users (SI, our frames) ---------------------------------------------------
+@dataclass(frozen=True)
+class Heartbeat:
+    sysid: int
+    compid: int
+    mav_type: int
+    autopilot: int
+
+
+@dataclass(frozen=True)
+class ImuMessage:
+    """One IMU sample: ``t`` s on the autopilot clock, ``gyro_b`` rad/s, ``accel_b`` m/s^2 specific force (FRD),
+    ``mag_b_nt`` nT or None, ``source`` the message name (HIGHRES_IMU, SCALED_IMU, RAW_IMU)."""
+
+    t: float
+    gyro_b: np.ndarray
+    accel_b: np.ndarray
+    mag_b_nt: np.ndarray | None
+    source: str
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class AttitudeMessage:
+    t: float
+    roll: float
+    pitch: float
+    yaw: float
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class PositionMessage:
+    """GLOBAL_POSITION_INT: ``lat``, ``lon`` rad, ``h_msl`` m, ``v_n`` NED m/s."""
+
+    t: float
+    lat: float
+    lon: float
+    h_msl: float
+    v_n: np.ndarray
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class PressureMessage:
+    t: float
+    pressure_pa: float
+    temperature_c: float
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class TimesyncMessage:
+    tc1: int
+    ts1: int
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class CommandMessage:
+    """COMMAND_LONG received (the emulator answers SET_MESSAGE_INTERVAL)."""
+
+    command: int
+    params: tuple[float, ...]
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class OutputMessage:
+    """A position output seen by a receiver (the emulator records what the bridge sent): ``lat``, ``lon`` rad,
+    ``h`` m, ``sigma_h`` m, ``healthy``, ``kind`` (gps_input, odometry, global_position_sensor), receive time ``t_rx``
+    (s, monotonic)."""
+
+    kind: str
+    t_rx: float
+    lat: float
+    lon: float
+    h: float
+    sigma_h: float
+    healthy: bool
+    fields: dict
+
+
+@dataclass
+class LinkStats:
+    """Counters of what the link dropped and why."""
+
+    received: int = 0
+    bad_data: int = 0
+    rejected_signature: int = 0
+    foreign_source: int = 0
+    sent: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dataclasses.asdict(self)
+
+
+# --- magnetometer scale ----------------------------------------------------------------------------------
+def highres_mag_to_nt(m: np.ndarray) -> tuple[np.ndarray, str]:
+    """Convert HIGHRES_IMU ``x/y/zmag`` to nT, detecting the unit from the magnitude.
+
+    The message definition says gauss, but ArduPilot fills milligauss x 1000 (about 224015 for a 0.224 G field; see
+    ../shared/MAVLINK_NOTES.md). The Earth's field is 0.25-0.65 G; allowing for interference we accept 0.1-1.5 G in
+    gauss, milligauss or ArduPilot's micro-gauss scale. Returns the field in nT and the unit detected.
+    """
+    mag = float(np.linalg.norm(m))
+    for unit, to_gauss in (("gauss", 1.0), ("milligauss", 1e-3), ("milligauss*1000", 1e-6)):
+        g = mag * to_gauss
+        if 0.1 <= g <= 1.5:
+            return np.asarray(m, float) * to_gauss * NT_PER_GAUSS, unit
+    raise InputError(f"HIGHRES_IMU magnetometer magnitude {mag:g} fits no known unit (gauss, mG, ArduPilot mG*1000)")
+
+
+def odometry_covariance_entry(sigma: float) -> float:
+    """The value for ODOMETRY pose_covariance c[0], c[6], c[11] such that ArduPilot's collapse
+    ``cbrt(c0^2 + c6^2 + c11^2)`` returns ``sigma`` (m): ``sqrt(sigma^3 / 3)``."""
+    return math.sqrt(sigma**3 / 3.0)
+
+
+def odometry_collapsed_sigma(c0: float, c6: float, c11: float) -> float:
+    """What ArduPilot (AP_VisualOdom via GCS_MAVLink handle_odometry) makes of the pose covariance entries."""
+    return (c0**2 + c6**2 + c11**2) ** (1.0 / 3.0)
+
+
+def unix_to_gps_week(t_unix: float) -> tuple[int, int]:
+    """GPS week number and milliseconds of week for a Unix time (s), as GPS_INPUT wants them."""
+    t_gps = t_unix - GPS_EPOCH_UNIX_S + GPS_MINUS_UTC_S
+    week = int(t_gps // SECONDS_PER_WEEK)
+    return week, int(round((t_gps - week * SECONDS_PER_WEEK) * 1000.0))
+
+
+def load_signing_key(path: str | os.PathLike[str]) -> bytes:
+    """Read a 32-byte MAVLink 2 signing key: a file holding 32 raw bytes, 64 hex characters, or a passphrase line
+    (hashed with SHA-256 as MAVProxy's ``signing setup`` does)."""
+    import hashlib
+
+    p = Path(path)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read the signing key ({exc.strerror})") from exc
+    if len(raw) == 32:
+        return raw
+    text = raw.decode("utf-8", errors="replace").strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text)
+        except ValueError:
+            pass
+    if not text:
+        raise InputError(f"{p}: the signing key file is empty (want 32 bytes, 64 hex characters or a passphrase)")
+    return hashlib.sha256(text.encode()).digest()
+
+
+class MavLink:
+    """A MAVLink 2 connection (any pymavlink URL: ``udpin:HOST:PORT``, ``udpout:``, ``tcp:``, ``/dev/ttyUSB0``).
+
+    ``peer_system``/``peer_component`` (None = any) restrict which sender is accepted for data messages; messages from
+    anyone else are dropped and counted in ``stats.foreign_source``. With a ``signing_key`` outgoing messages are signed
+    and unsigned or wrongly signed incoming messages are dropped and counted.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        baud: int = 115200,
+        source_system: int = 1,
+        source_component: int = MAV_COMP_ID_ONBOARD_COMPUTER,
+        peer_system: int | None = None,
+        peer_component: int | None = None,
+        signing_key: bytes | None = None,
+        accept_unsigned: bool = False,
+    ) -> None:
+        self.url = url
+        self.stats = LinkStats()
+        self.peer_system = peer_system
+        self.peer_component = peer_component
+        self._baud = baud
+        self._source = (source_system, source_component)
+        self._signing_key = signing_key
+        self._accept_unsigned = accept_unsigned
+        self._conn = self._open()
+
+    # -- connection --------------------------------------------------------------------------------------
+    def _open(self):
+        try:
+            conn = mavutil.mavlink_connection(
+                self.url,
+                baud=self._baud,
+                source_system=self._source[0],
+                source_component=self._source[1],
+                dialect="ardupilotmega",
+                robust_parsing=True,
+                autoreconnect=True,
+            )
+        except Exception as exc:  # pymavlink raises bare OSError/SerialException/ValueError
+            raise LinkError(f"cannot open MAVLink connection {self.url!r}: {exc}") from exc
+        if self._signing_key is not None:
+            unsigned_ok: Callable[[object, int], bool] | None = (lambda _mav, _id: True) if self._accept_unsigned else (
+                lambda _mav, _id: False
+            )
+            conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=unsigned_ok)
+        return conn
+
+    def reconnect(self) -> None:
+        """Close and reopen the connection (after link loss on serial/TCP)."""
+        self.close()
+        self._conn = self._open()
+
+    def close(self) -> None:
+        try:
+            self._conn.close()
+        except Exception:  # noqa: BLE001 - closing a dead link must not raise
+            pass
+
+    # -- receiving ---------------------------------------------------------------------------------------
+    def _accept_source(self, msg) -> bool:
+        sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
+        if self.peer_system is not None and sysid != self.peer_system:
+            return False
+        return self.peer_component is None or compid == self.peer_component
+
+    def _pending(self, timeout: float = 0.0) -> bool:
+        """True if the socket/serial port has bytes to read (waiting up to ``timeout`` s)."""
+        fd = getattr(self._conn, "fd", None)
+        if fd is None:
+            return False
+        try:
+            return bool(select.select([fd], [], [], timeout)[0])
+        except (OSError, ValueError):
+            return False
+
+    def recv(self, timeout: float = 0.0, budget_s: float = 0.05) -> Iterator[object]:
+        """Yield every decoded message available now (waiting up to ``timeout`` s for data), as the dataclasses above.
+
+        Garbage, bad CRCs, bad signatures and foreign senders are dropped and counted. At most ``budget_s`` is spent
+        decoding per call, so that a flood of junk cannot starve the caller's periodic work.
+        """
+        if timeout > 0:
+            self._pending(timeout)
+        t_end = time.monotonic() + budget_s
+        while True:
+            try:
+                batch = self._read_messages()
+            except Exception as exc:  # noqa: BLE001 - a broken frame or socket error must not stop the bridge
+                self.stats.bad_data += 1
+                log.debug("receive error: %s", exc)
+                batch = []
+            self._count_signing()
+            if not batch:
+                if time.monotonic() < t_end and self._pending():
+                    continue
+                return
+            for msg in batch:
+                out = self._screen(msg)
+                if out is not None:
+                    yield out
+            if time.monotonic() > t_end:
+                return
+
+    def _read_messages(self) -> list:
+        """Messages from one read. On UDP every datagram is parsed on its own (the parser is reset first), so a
+        truncated or junk datagram can never swallow the frames of the next one; serial and TCP are byte streams."""
+        if isinstance(self._conn, mavutil.mavudp):
+            data = self._conn.recv()
+            if not data:
+                return []
+            mav = self._conn.mav
+            mav.buf = bytearray()  # internal parser state of pymavlink's MAVLink class
+            mav.buf_index = 0
+            mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
+            mav.have_prefix_error = False
+            msgs = []
+            m = mav.parse_char(data)
+            while m is not None:
+                msgs.append(m)
+                try:
+                    m = mav.parse_char(b"")
+                except Exception:  # noqa: BLE001 - the rest of a junk datagram
+                    self.stats.bad_data += 1
+                    break
+            for m in msgs:
+                self._conn.post_message(m)
+            if not msgs:
+                self.stats.bad_data += 1  # a datagram that held no frame at all
+            return msgs
+        msg = self._conn.recv_msg()
+        return [] if msg is None else [msg]
+
+    def _screen(self, msg) -> object | None:
+        """Decode one pymavlink message, counting and dropping junk and foreign senders."""
+        kind = msg.get_type()
+        if kind in ("BAD_DATA", "UNKNOWN"):
+            self.stats.bad_data += 1
+            return None
+        self.stats.received += 1
+        out = self._decode(msg, kind)
+        if out is None:
+            return None
+        always = (Heartbeat, OutputMessage, CommandMessage, TimesyncMessage)
+        if not isinstance(out, always) and not self._accept_source(msg):
+            self.stats.foreign_source += 1
+            return None
+        return out
+
+    def _count_signing(self) -> None:
+        signing = self._conn.mav.signing
+        self.stats.rejected_signature = int(signing.reject_count)
+
+    def _decode(self, msg, kind: str):  # noqa: C901 - a flat table of message kinds
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        try:
+            if kind == "HEARTBEAT":
+                return Heartbeat(*src, int(msg.type), int(msg.autopilot))
+            if kind == "HIGHRES_IMU":
+                fields = int(msg.fields_updated)
+                mag = None
+                m = np.array([msg.xmag, msg.ymag, msg.zmag], float)
+                if (fields & 0b111000000 or fields == 0) and np.all(np.isfinite(m)) and np.linalg.norm(m) > 0:
+                    try:
+                        mag, _unit = highres_mag_to_nt(m)
+                    except InputError:
+                        mag = None
+                return ImuMessage(
+                    msg.time_usec * 1e-6,
+                    np.array([msg.xgyro, msg.ygyro, msg.zgyro], float),
+                    np.array([msg.xacc, msg.yacc, msg.zacc], float),
+                    mag,
+                    "HIGHRES_IMU",
+                    *src,
+                )
+            if kind in ("SCALED_IMU", "RAW_IMU"):
+                t = msg.time_boot_ms * 1e-3 if kind == "SCALED_IMU" else msg.time_usec * 1e-6
+                return ImuMessage(
+                    t,
+                    np.array([msg.xgyro, msg.ygyro, msg.zgyro], float) * MILLIRAD_TO_RAD,
+                    np.array([msg.xacc, msg.yacc, msg.zacc], float) * MILLI_G_TO_MPS2,
+                    np.array([msg.xmag, msg.ymag, msg.zmag], float) * 1e-3 * NT_PER_GAUSS,
+                    kind,
+                    *src,
+                )
+            if kind == "ATTITUDE":
+                return AttitudeMessage(msg.time_boot_ms * 1e-3, msg.roll, msg.pitch, msg.yaw, *src)
+            if kind == "GLOBAL_POSITION_INT":
+                return PositionMessage(
+                    msg.time_boot_ms * 1e-3,
+                    math.radians(msg.lat / DEG_E7),
+                    math.radians(msg.lon / DEG_E7),
+                    msg.alt * 1e-3,
+                    np.array([msg.vx, msg.vy, msg.vz], float) * 1e-2,
+                    *src,
+                )
+            if kind == "SCALED_PRESSURE":
+                return PressureMessage(msg.time_boot_ms * 1e-3, msg.press_abs * 100.0, msg.temperature * 1e-2, *src)
+            if kind == "TIMESYNC":
+                return TimesyncMessage(int(msg.tc1), int(msg.ts1), *src)
+            if kind == "COMMAND_LONG":
+                params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+                return CommandMessage(int(msg.command), params, *src)
+            if kind == "GPS_INPUT":
+                healthy = msg.fix_type >= 3
+                return OutputMessage(
+                    "gps_input", time.monotonic(), math.radians(msg.lat / DEG_E7), math.radians(msg.lon / DEG_E7),
+                    msg.alt, msg.horiz_accuracy, healthy, msg.to_dict(),
+                )
+            if kind == "GLOBAL_POSITION_SENSOR":
+                healthy = not (msg.flags & GLOBAL_POSITION_UNHEALTHY)
+                return OutputMessage(
+                    "global_position_sensor", time.monotonic(), math.radians(msg.lat / DEG_E7),
+                    math.radians(msg.lon / DEG_E7), msg.alt_ellipsoid, msg.eph, healthy, msg.to_dict(),
+                )
+            if kind == "ODOMETRY":
+                c = msg.pose_covariance
+                sigma_h = odometry_collapsed_sigma(c[0], c[6], c[11]) if math.isfinite(c[0]) else math.nan
+                return OutputMessage(
+                    "odometry", time.monotonic(), msg.x, msg.y, msg.z, sigma_h, msg.quality > 0, msg.to_dict()
+                )
+        except (AttributeError, TypeError, ValueError) as exc:
+            self.stats.bad_data += 1
+            log.debug("undecodable %s: %s", kind, exc)
+        return None
+
+    # -- sending -----------------------------------------------------------------------------------------
+    @property
+    def mav(self):
+        return self._conn.mav
+
+    def _send(self, send: Callable[[], None]) -> None:
+        try:
+            send()
+            self.stats.sent += 1
+        except OSError as exc:  # link down: the caller's health logic reconnects
+            log.debug("send failed: %s", exc)
+
+    def send_heartbeat(self, *, autopilot: bool = False, mav_type: int | None = None) -> None:
+        """Our heartbeat: an onboard controller (companion computer), or an autopilot when emulating one."""
+        if autopilot:
+            t = mavlink2.MAV_TYPE_QUADROTOR if mav_type is None else mav_type
+            ap = mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
+        else:
+            t = MAV_TYPE_ONBOARD_CONTROLLER if mav_type is None else mav_type
+            ap = mavlink2.MAV_AUTOPILOT_INVALID
+        self._send(lambda: self.mav.heartbeat_send(t, ap, 0, 0, mavlink2.MAV_STATE_ACTIVE))
+
+    def request_message_interval(self, name: str, rate_hz: float, target_system: int, target_component: int) -> None:
+        """SET_MESSAGE_INTERVAL (MAV_CMD 511) for message ``name`` at ``rate_hz``."""
+        interval_us = 1e6 / rate_hz
+        self._send(
+            lambda: self.mav.command_long_send(
+                target_system, target_component, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                MSG_ID[name], interval_us, 0, 0, 0, 0, 0,
+            )
+        )
+
+    def send_timesync(self, tc1: int, ts1: int) -> None:
+        self._send(lambda: self.mav.timesync_send(tc1, ts1))
+
+    def send_statustext(self, severity: str, text: str) -> None:
+        sev = SEVERITY[severity]
+        payload = text.encode("ascii", errors="replace")[:50]
+        self._send(lambda: self.mav.statustext_send(sev, payload))
+
+    def send_set_gps_global_origin(self, target_system: int, lat: float, lon: float, h_msl: float) -> None:
+        self._send(
+            lambda: self.mav.set_gps_global_origin_send(
+                target_system, int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)),
+                int(round(h_msl * 1000.0)), 0,
+            )
+        )
+
+    def send_gps_input(
+        self, *, t_unix: float, lat: float, lon: float, h_msl: float, v_n: np.ndarray, sigma_h: float, sigma_v: float,
+        sigma_speed: float, healthy: bool, satellites: int = 10,
+    ) -> None:
+        """GPS_INPUT for ArduPilot ``GPS1_TYPE=14``. Unhealthy -> fix_type 1 (no fix), position zeroed: the stream keeps
+        flowing (a pause makes ArduPilot report "Bad fix") but no untrusted position is sent."""
+        week, week_ms = unix_to_gps_week(t_unix)
+        fix_type = 3 if healthy else 1
+        lat_e7 = int(round(math.degrees(lat) * DEG_E7)) if healthy else 0
+        lon_e7 = int(round(math.degrees(lon) * DEG_E7)) if healthy else 0
+        hdop = max(0.5, sigma_h / 3.0) if healthy else 99.0
+        self._send(
+            lambda: self.mav.gps_input_send(
+                int(t_unix * 1e6), 0, 0, week_ms, week, fix_type, lat_e7, lon_e7, float(h_msl if healthy else 0.0),
+                hdop, hdop, float(v_n[0]), float(v_n[1]), float(v_n[2]), float(sigma_speed), float(sigma_h),
+                float(sigma_v), satellites if healthy else 0, 0,
+            )
+        )
+
+    def send_odometry(
+        self, *, t_usec: int, r_ned: np.ndarray, q_nb: np.ndarray, v_b: np.ndarray, sigma_pos: np.ndarray,
+        sigma_vel: np.ndarray, reset_counter: int, quality: int,
+    ) -> None:
+        """ODOMETRY with ``frame_id = MAV_FRAME_LOCAL_FRD``, ``child_frame_id = MAV_FRAME_BODY_FRD``; ``v_b`` is the
+        body-frame (FRD) velocity, angular rates are sent as NaN (ArduPilot's pose + velocity path).
+
+        ArduPilot collapses the pose covariance to one sigma as ``posErr = cbrt(c[0]^2 + c[6]^2 + c[11]^2)`` (and the
+        same over c[15], c[18], c[20] for attitude), treating the entries as if they were not variances. To make that
+        collapse yield the intended sigma we fill the three entries with ``sqrt(sigma^3 / 3)``, sigma being the RMS of
+        the per-axis position sigmas. Upper-triangular row-major (21 entries)."""
+        sigma = float(np.sqrt(np.mean(np.square(sigma_pos))))
+        att_sigma = 0.05  # rad: attitude accuracy we claim (the autopilot keeps its own attitude)
+        cov = [0.0] * 21
+        cov[0] = cov[6] = cov[11] = odometry_covariance_entry(sigma)
+        cov[15] = cov[18] = cov[20] = odometry_covariance_entry(att_sigma)
+        vcov = [0.0] * 21
+        vcov[0], vcov[6], vcov[11] = (float(s) ** 2 for s in sigma_vel)
+        qw = [float(q_nb[3]), float(q_nb[0]), float(q_nb[1]), float(q_nb[2])]  # MAVLink: w, x, y, z
+        self._send(
+            lambda: self.mav.odometry_send(
+                t_usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, float(r_ned[0]), float(r_ned[1]), float(r_ned[2]),
+                qw, float(v_b[0]), float(v_b[1]), float(v_b[2]), math.nan, math.nan, math.nan, cov, vcov,
+                reset_counter, mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, quality,
+            )
+        )
+
+    def send_global_position_sensor(
+        self, *, target_system: int, target_component: int, t_usec: int, processing_us: int, source: str, lat: float,
+        lon: float, h_ellipsoid: float, h_msl: float, sigma_h: float, sigma_v: float, healthy: bool,
+    ) -> None:
+        """GLOBAL_POSITION_SENSOR (296) for PX4 auxiliary global position; unhealthy -> GLOBAL_POSITION_UNHEALTHY."""
+        flags = 0 if healthy else GLOBAL_POSITION_UNHEALTHY
+        self._send(
+            lambda: self.mav.global_position_sensor_send(
+                target_system, target_component, 0, t_usec, processing_us, GLOBAL_POSITION_SOURCE[source], flags,
+                int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)), float(h_ellipsoid),
+                float(h_msl), float(sigma_h), float(sigma_v),
+            )
+        )
+
+    # -- used by the autopilot emulator --------------------------------------------------------------------
+    def send_highres_imu(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray, mag_b_nt: np.ndarray | None,
+                         *, ardupilot_mag_scale: bool = True) -> None:
+        """HIGHRES_IMU as ArduPilot sends it (magnetometer in milligauss x 1000 when ``ardupilot_mag_scale``)."""
+        if mag_b_nt is None:
+            mag = (0.0, 0.0, 0.0)
+            fields = 0b111111
+        else:
+            scale = (1e6 if ardupilot_mag_scale else 1.0) / NT_PER_GAUSS
+            mag = tuple(float(x) * scale for x in mag_b_nt)
+            fields = 0b111111111
+        self._send(
+            lambda: self.mav.highres_imu_send(
+                int(round(t * 1e6)), float(accel_b[0]), float(accel_b[1]), float(accel_b[2]), float(gyro_b[0]),
+                float(gyro_b[1]), float(gyro_b[2]), *mag, 1013.25, 0.0, 0.0, 20.0, fields, 0,
+            )
+        )
+
+    def send_attitude(self, t: float, roll: float, pitch: float, yaw: float) -> None:
+        self._send(lambda: self.mav.attitude_send(int(t * 1e3) & 0xFFFFFFFF, roll, pitch, yaw, 0.0, 0.0, 0.0))
+
+    def send_global_position_int(self, t: float, lat: float, lon: float, h_msl: float, v_n: np.ndarray) -> None:
+        self._send(
+            lambda: self.mav.global_position_int_send(
+                int(t * 1e3) & 0xFFFFFFFF, int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)),
+                int(round(h_msl * 1000)), 0, int(round(v_n[0] * 100)), int(round(v_n[1] * 100)), int(round(v_n[2] * 100)),
+                65535,
+            )
+        )
+
+    def write_raw(self, data: bytes) -> None:
+        """Write raw bytes on the link (tests: junk and truncated frames)."""
+        self._send(lambda: self._conn.write(data))
+
+
+def iter_tlog(path: str | os.PathLike[str]) -> Iterator[object]:
+    """Decoded messages of a telemetry log (.tlog) as the dataclasses above (for ``magnav-ins replay``)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such tlog file")
+    try:
+        conn = mavutil.mavlink_connection(str(p), dialect="ardupilotmega", robust_parsing=True)
+    except Exception as exc:  # noqa: BLE001
+        raise InputError(f"{p}: cannot read as a MAVLink telemetry log: {exc}") from exc
+    reader = MavLink.__new__(MavLink)
+    reader.stats = LinkStats()
+    reader.peer_system = None
+    reader.peer_component = None
+    reader._conn = conn
+    try:
+        while True:
+            msg = conn.recv_match(blocking=False)
+            if msg is None:
+                break
+            kind = msg.get_type()
+            if kind in ("BAD_DATA", "UNKNOWN"):
+                continue
+            out = reader._decode(msg, kind)
+            if out is not None:
+                yield out
+    finally:
+        conn.close()
