@@ -177,7 +177,17 @@ def plot_track(ds: Any, path: str | Path, fmap: Any = None, run: int = 0, ellips
             ax.plot(flon[k] + pts[1] / m_per_deg_e, flat[k] + pts[0] / m_per_deg_n, color=line.get_color(), lw=0.5)
     ax.set_xlabel("longitude (deg)")
     ax.set_ylabel("latitude (deg)")
-    ax.set_aspect(1.0 / max(np.cos(np.mean(lat) * DEG_TO_RAD), 1e-3))
+    # equal metres per degree on both axes, and a box no flatter than 1:3 around the data
+    coslat = max(np.cos(np.mean(lat) * DEG_TO_RAD), 1e-3)
+    (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+    wx, wy = (x1 - x0) * coslat, y1 - y0
+    if wy < wx / 3:
+        c = 0.5 * (y0 + y1)
+        ax.set_ylim(c - wx / 6, c + wx / 6)
+    elif wx < wy / 3:
+        c = 0.5 * (x0 + x1)
+        ax.set_xlim(c - wy / 6 / coslat, c + wy / 6 / coslat)
+    ax.set_aspect(1.0 / coslat)
     ax.set_title(f"Run {int(ds['run'].values[run])}: tracks, fixes and 3σ ellipses")
     ax.legend(fontsize=7, loc="best")
     ax.grid(True, alpha=0.3)

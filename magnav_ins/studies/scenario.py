@@ -191,8 +191,8 @@ class Scenario:
     trajectory: TrajectoryConfig
     imu: ImuConfig
     init: InitConfig
-    map: MapConfig
-    sensor: SensorConfig
+    map: MapConfig | None
+    sensor: SensorConfig | None
     estimators: tuple[EstimatorConfig, ...]
     description: str = ""
     source: Path | None = field(default=None, compare=False)
@@ -443,7 +443,9 @@ def scenario_from_dict(
     """Validate a parsed scenario (the dict tomllib returns). Relative paths resolve against ``source``'s folder."""
     ctx = _Ctx(source, lines or {})
     base = source.parent if source is not None else Path.cwd()
-    _check_keys(ctx, "", data, _TOP_KEYS, {"name", "trajectory", "imu", "map", "sensor"})
+    # [map] and [sensor] may be left out only by a free-inertial study (no [[estimator]])
+    need = {"name", "trajectory", "imu"} | ({"map", "sensor"} if data.get("estimator") else set())
+    _check_keys(ctx, "", data, _TOP_KEYS, need)
     name = _str(ctx, "name", data["name"])
     description = _str(ctx, "description", data.get("description", ""))
     seed = _int(ctx, "seed", data.get("seed", 0), minimum=0)
@@ -451,8 +453,12 @@ def scenario_from_dict(
     traj = _trajectory(ctx, _table(ctx, data, "trajectory"), base)  # type: ignore[arg-type]
     imu = _imu(ctx, _table(ctx, data, "imu"))  # type: ignore[arg-type]
     init = _init(ctx, _table(ctx, data, "init", required=False))
-    fmap = _map(ctx, _table(ctx, data, "map"), base)  # type: ignore[arg-type]
-    sensor = _sensor(ctx, _table(ctx, data, "sensor"), fmap, traj)  # type: ignore[arg-type]
+    fmap = _map(ctx, _table(ctx, data, "map"), base) if "map" in data else None  # type: ignore[arg-type]
+    sensor = None
+    if "sensor" in data:
+        if fmap is None:
+            raise ctx.error("sensor", "a [sensor] needs a [map] to read from")
+        sensor = _sensor(ctx, _table(ctx, data, "sensor"), fmap, traj)  # type: ignore[arg-type]
     ests = _estimators(ctx, data)
     return Scenario(name, seed, runs, traj, imu, init, fmap, sensor, ests, description, source, dict(ctx.lines))
 

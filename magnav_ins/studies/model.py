@@ -1,0 +1,289 @@
+"""The study model built from a scenario: truth, IMU errors, initial errors, readings, estimators, per run.
+
+Per run (seed sequence ``ss``, see :mod:`.runner`), three independent generators are derived without mutating
+``ss``: ``child(ss, 0)`` draws the IMU errors (``ins.imu_models.corrupt``), ``child(ss, 1)`` the initial INS errors,
+``child(ss, 2)`` the sensor noise; ``child(ss, 10 + j)`` is handed to estimator ``j`` (for randomised matchers).
+The truth trajectory, the ideal IMU and the map are deterministic and shared by all runs; they are built once per
+process and memoised (keyed by the scenario) so parallel workers do not rebuild them for every run.
+
+The free-inertial baseline integrates the corrupted IMU from the perturbed initial state with the vertical channel
+held at the truth's initial height (a barometric/height aid; an unaided vertical channel diverges within minutes,
+Titterton & Weston sec. 3.5.2), exactly as the aided estimators receive it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..core.errors import ConfigError, MagnavError
+from ..core.frames import C_nb_from_q, meters_to_latlon
+from ..core.types import FieldReadings, NavState, NavTrajectory
+from ..core.units import DEG_TO_RAD
+from .runner import EstimatorOutput, RunOutput
+from .scenario import FREE_INERTIAL, Scenario
+
+_SHARED: dict[str, dict[str, Any]] = {}
+_SHARED_MAX = 2
+
+
+def child(ss: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
+    """The ``k``-th child of ``ss`` without mutating it (``ss.spawn`` would advance its counter)."""
+    return np.random.SeedSequence(ss.entropy, spawn_key=(*ss.spawn_key, k), pool_size=ss.pool_size)
+
+
+# ------------------------------------------------------------------------------------------------ truth & map
+def build_truth(sc: Scenario) -> NavTrajectory:
+    """The truth trajectory of ``sc`` at the IMU rate (``ins.simulate``), truncated to ``duration_s``."""
+    from ..ins import simulate
+
+    tr = sc.trajectory
+    rate = sc.imu.rate_hz
+    try:
+        if tr.kind == "great_circle":
+            (la0, lo0), (la1, lo1) = tr.start_deg, tr.end_deg  # type: ignore[misc]
+            traj = simulate.great_circle(
+                la0 * DEG_TO_RAD,
+                lo0 * DEG_TO_RAD,
+                la1 * DEG_TO_RAD,
+                lo1 * DEG_TO_RAD,
+                tr.altitude_m,
+                tr.speed_mps,
+                rate,
+            )
+        elif tr.kind == "waypoints":
+            pts = np.array([(la * DEG_TO_RAD, lo * DEG_TO_RAD, tr.altitude_m) for la, lo in tr.points_deg])  # type: ignore[union-attr]
+            traj = simulate.waypoints(pts, tr.speed_mps, rate)
+        elif tr.kind == "survey_line":
+            line = survey_line_points(sc)
+            traj = simulate.survey_line(line["lat"], line["lon"], line["h"], tr.speed_mps, rate)
+        else:
+            traj = simulate.trajectory_from_csv(tr.path)  # type: ignore[arg-type]
+    except MagnavError as exc:
+        raise ConfigError(f"{sc.where('trajectory')}: {exc}") from None
+    if tr.duration_s is not None:
+        n = int(np.searchsorted(traj.t, traj.t[0] + tr.duration_s, side="right"))
+        traj = traj.slice(0, max(n, 2))
+    return traj
+
+
+def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
+    """The survey line ``[trajectory] line`` of ``survey``: ``lat``, ``lon`` (rad), ``h`` (m), ``value`` (map unit),
+    in along-line order (``maps.io.read_survey_line``)."""
+    from ..maps import io as maps_io
+
+    try:
+        return maps_io.read_survey_line(sc.trajectory.survey, sc.trajectory.line)
+    except MagnavError as exc:
+        raise ConfigError(f"{sc.where('trajectory.line')}: {exc}") from None
+
+
+def build_map(sc: Scenario) -> Any:
+    """The scenario's map: ``synthetic:random_field`` / ``synthetic:hallway`` (``maps.synthetic``, drawn from
+    ``[map] options.seed``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load)."""
+    m = sc.map
+    if m is None:
+        raise ConfigError(f"{sc.source}: the scenario has no [map]")
+    opts = dict(m.options)
+    if m.path.startswith("synthetic:"):
+        from ..maps import synthetic
+
+        which = m.path.split(":", 1)[1]
+        rng = np.random.default_rng(int(opts.pop("seed", 0)))
+        o = opts.pop("origin_deg", None)
+        if o is None:
+            raise ConfigError(f"{sc.where('map.options')}: synthetic maps need options.origin_deg = [lat, lon, h]")
+        origin = (o[0] * DEG_TO_RAD, o[1] * DEG_TO_RAD, float(o[2]))
+        try:
+            if which == "hallway":
+                return synthetic.hallway_map(rng, origin=origin, **opts)
+            if which == "random_field":
+                shape = tuple(opts.pop("shape", (200, 200)))
+                return synthetic.random_field_map(
+                    shape,  # type: ignore[arg-type]
+                    float(opts.pop("spacing_m", 100.0)),
+                    float(opts.pop("correlation_length_m", 1000.0)),
+                    float(opts.pop("sigma", 10.0)),
+                    rng,
+                    kind=m.kind,
+                    origin=origin,
+                    altitude_m=float(opts.pop("altitude_m", origin[2])),
+                )
+        except TypeError as exc:
+            raise ConfigError(f"{sc.where('map.options')}: {exc}") from None
+        raise ConfigError(f"{sc.where('map.path')}: unknown synthetic map {which!r} (hallway, random_field)")
+    from ..maps import io as maps_io
+
+    try:
+        fmap = maps_io.load_map(
+            m.path, grid_spacing_m=m.grid_spacing_m, exclude_lines=list(m.exclude_lines) or None, **opts
+        )
+    except MagnavError as exc:
+        raise ConfigError(f"{sc.where('map.path')}: {exc}") from None
+    if fmap.kind is not m.kind:
+        raise ConfigError(f"{sc.where('map.kind')}: the map holds {fmap.kind.value}, the scenario says {m.kind.value}")
+    return fmap
+
+
+def _shared(sc: Scenario) -> dict[str, Any]:
+    key = repr(sc) + repr([e.matcher for e in sc.estimators]) + repr(sc.map.options if sc.map else None)
+    if key not in _SHARED:
+        from ..ins.simulate import ideal_imu
+
+        truth = build_truth(sc)
+        if len(_SHARED) >= _SHARED_MAX:
+            _SHARED.pop(next(iter(_SHARED)))
+        _SHARED[key] = {"truth": truth, "imu": ideal_imu(truth), "map": build_map(sc) if sc.map else None}
+    return _SHARED[key]
+
+
+# ------------------------------------------------------------------------------------------------ per-run draws
+def perturbed_init(sc: Scenario, truth: NavTrajectory, rng: np.random.Generator) -> NavState:
+    """The truth's first state with the ``[init]`` 1-sigma errors drawn from ``rng``: position north/east (m),
+    velocity NED (m/s), attitude as a small rotation (roll, pitch, yaw sigma) applied on the nav side."""
+    from scipy.spatial.transform import Rotation
+
+    s0 = truth.at(0)
+    ic = sc.init
+    dn, de = rng.normal(0.0, ic.position_sigma_m, 2)
+    dlat, dlon = meters_to_latlon(dn, de, s0.lat, s0.h)
+    dv = rng.normal(0.0, ic.velocity_sigma_mps, 3)
+    datt = rng.normal(0.0, 1.0, 3) * np.asarray(ic.attitude_sigma_deg) * DEG_TO_RAD
+    C_err = Rotation.from_euler("ZYX", datt[::-1]).as_matrix()  # yaw, pitch, roll tilt
+    q = Rotation.from_matrix(C_err @ C_nb_from_q(s0.q_nb)).as_quat()
+    return NavState(s0.t, s0.lat + float(dlat), s0.lon + float(dlon), s0.h, s0.v_n + dv, q)
+
+
+def simulate_readings(sc: Scenario, truth: NavTrajectory, fmap: Any, rng: np.random.Generator) -> FieldReadings:
+    """Readings every ``interval_s`` along the truth: the map at the true position plus N(0, sigma) noise, or
+    (``source = "survey"``) the survey's own readings interpolated along the line at the truth positions plus
+    noise. Readings off the map are dropped."""
+    s = sc.sensor
+    if s is None:
+        raise ConfigError(f"{sc.source}: the scenario has no [sensor]")
+    t = np.arange(truth.t[0] + s.interval_s, truth.t[-1] + 1e-9, s.interval_s)
+    lat = np.interp(t, truth.t, truth.lat)
+    lon = np.interp(t, truth.t, truth.lon)
+    h = np.interp(t, truth.t, truth.h)
+    if s.source == "survey":
+        line = survey_line_points(sc)
+        # along-line distance of the survey samples and of the truth positions (nearest-point projection)
+        value = _resample_along_line(line, lat, lon)
+    else:
+        value = np.asarray(fmap.value(lat, lon, h), float)
+    ok = np.isfinite(value) if value.ndim == 1 else np.isfinite(value).all(axis=1)
+    noise = rng.normal(0.0, s.sigma, value.shape)
+    return FieldReadings(t[ok], (value + noise)[ok], s.sigma, s.field_kind)
+
+
+def _resample_along_line(line: dict[str, np.ndarray], lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+    from ..core.frames import latlon_to_meters
+
+    lat0, lon0 = float(line["lat"][0]), float(line["lon"][0])
+    sn, se = latlon_to_meters(line["lat"] - lat0, line["lon"] - lon0, lat0)
+    qn, qe = latlon_to_meters(lat - lat0, lon - lon0, lat0)
+    d = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(sn), np.diff(se)))])
+    # nearest survey sample for each query, then its along-line distance
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(np.column_stack([sn, se])).query(np.column_stack([qn, qe]))
+    return np.interp(d[idx], d, line["value"])
+
+
+# ------------------------------------------------------------------------------------------------ the model
+@dataclass(frozen=True)
+class PipelineModel:
+    """A :class:`~magnav_ins.studies.runner.StudyModel` built from a validated :class:`Scenario`."""
+
+    scenario: Scenario
+
+    @property
+    def name(self) -> str:
+        return self.scenario.name
+
+    def estimator_names(self) -> tuple[str, ...]:
+        return (*(e.name for e in self.scenario.estimators), FREE_INERTIAL)
+
+    def shared(self) -> dict[str, Any]:
+        """Truth, ideal IMU and map (memoised per process)."""
+        return _shared(self.scenario)
+
+    def run(self, seed: np.random.SeedSequence) -> RunOutput:
+        from ..ins import imu_models
+        from ..ins.strapdown import integrate
+
+        sc = self.scenario
+        sh = self.shared()
+        truth: NavTrajectory = sh["truth"]
+        imu, _ = imu_models.corrupt(
+            sh["imu"], imu_models.get_grade(sc.imu.grade), np.random.default_rng(child(seed, 0))
+        )
+        init = perturbed_init(sc, truth, np.random.default_rng(child(seed, 1)))
+        readings = None
+        if sc.sensor is not None:
+            readings = simulate_readings(sc, truth, sh["map"], np.random.default_rng(child(seed, 2)))
+        hold = float(truth.h[0])
+        outs: list[EstimatorOutput] = []
+        for j in range(len(sc.estimators)):
+            outs.append(
+                run_estimator(sc, j, truth, imu, init, readings, sh["map"], np.random.default_rng(child(seed, 10 + j)))
+            )
+        free = integrate(init, imu, altitude_hold=hold)
+        outs.append(EstimatorOutput(FREE_INERTIAL, None, FREE_INERTIAL, free.lat, free.lon))
+        return RunOutput(truth.t, truth.lat, truth.lon, tuple(outs))
+
+
+def run_estimator(
+    sc: Scenario,
+    j: int,
+    truth: NavTrajectory,
+    imu: Any,
+    init: NavState,
+    readings: FieldReadings,
+    fmap: Any,
+    rng: np.random.Generator,
+) -> EstimatorOutput:
+    """Run estimator ``j`` of the scenario through :mod:`magnav_ins.pipeline` and resample its output onto the
+    truth's time base."""
+    from .. import pipeline
+
+    est = sc.estimators[j]
+    try:
+        res = pipeline.run_configured(
+            matcher=est.matcher,
+            fusion=est.fusion,
+            fmap=fmap,
+            imu=imu,
+            readings=readings,
+            init=init,
+            init_sigmas=sc.init,
+            grade=sc.imu.grade,
+            altitude_hold=float(truth.h[0]),
+            rng=rng,
+        )
+    except MagnavError as exc:
+        raise ConfigError(f"{sc.where(f'estimator[{j}]')}: {exc}") from None
+    nav = res.trajectory
+    lat = np.interp(truth.t, nav.t, nav.lat)
+    lon = np.interp(truth.t, nav.t, np.unwrap(nav.lon))
+    cov = None
+    if getattr(res, "cov_ne", None) is not None and len(res.cov_t):
+        cov = np.stack([np.interp(truth.t, res.cov_t, res.cov_ne[:, a, b]) for a in range(2) for b in range(2)], -1)
+        cov = cov.reshape(-1, 2, 2)
+    fixes = list(res.fixes)
+    fix_t = np.array([f.t for f in fixes], float)
+    return EstimatorOutput(
+        est.name,
+        est.matcher_kind,
+        est.fusion_kind,
+        lat,
+        lon,
+        cov,
+        fix_t,
+        np.array([f.lat for f in fixes], float),
+        np.array([f.lon for f in fixes], float),
+        np.array([f.cov_ne for f in fixes], float).reshape(-1, 2, 2),
+        np.array([f.available for f in fixes], bool),
+    )
