@@ -112,6 +112,16 @@ def test_stepper_equals_batch(pyins_motion):
     np.testing.assert_allclose(rows[:, 6:], batch.q_nb[1:], rtol=0, atol=4e-16)
     assert step.t == t[-1]
 
+    # advance(): the same steps in chunked compiled calls (what the CLI uses for long files)
+    chunked = StrapdownStepper(init)
+    chunked.prime(dth[0], dv[0])
+    parts = [
+        chunked.advance(ImuIncrements(t[i : i + 700], dth[i : i + 700], dv[i : i + 700])) for i in range(1, k, 700)
+    ]
+    np.testing.assert_array_equal(np.concatenate([p.lat for p in parts]), batch.lat[1:])
+    np.testing.assert_array_equal(np.concatenate([p.v_n for p in parts]), batch.v_n[1:])
+    np.testing.assert_array_equal(np.concatenate([p.q_nb for p in parts]), batch.q_nb[1:])
+
     # the parallel batch kernel (rate type, decimated) gives the same numbers as integrate() on the same rates
     dts = np.diff(t, prepend=t[0] - (t[1] - t[0]))[:, None]
     g, a = dth / dts, dv / dts

@@ -478,6 +478,39 @@ class StrapdownStepper:
         """Replace the navigation state (e.g. after a filter correction); keeps the coning/sculling memory."""
         self._set(nav)
 
+    def prime(self, dtheta_b: FloatArray, dv_b: FloatArray) -> None:
+        """Set the coning/sculling memory to the increments (rad, m/s, FRD) of the interval *ending* at the current
+        time, as :func:`integrate` does with sample 0, so that the first step is two-sample too."""
+        self._s[1 + _NX : 1 + _NX + 3] = dtheta_b
+        self._s[1 + _NX + 3 : 1 + _NX + 6] = dv_b
+        self._s[1 + _NX + 6] = 1.0
+
+    def advance(self, imu: ImuBatch | ImuIncrements) -> NavTrajectory:
+        """Step through every sample of ``imu`` (the first covers ``(self.t, imu.t[0]]``) in one compiled call and
+        return the states at ``imu.t`` (same numbers as repeated :meth:`step_rate` / :meth:`step_increment`).
+        For chunked processing of long recordings."""
+        t = np.asarray(imu.t, dtype=float)
+        if len(t) == 0:
+            return _trajectory(t, np.empty((0, _NX)))
+        t_ext = np.concatenate(([self._s[0]], t))
+        _check_time(t_ext, "StrapdownStepper.advance")
+        if isinstance(imu, ImuBatch):
+            a, b, is_rate = imu.gyro_b, imu.accel_b, True
+        else:
+            a, b, is_rate = imu.dtheta_b, imu.dv_b, False
+        if not (np.isfinite(a).all() and np.isfinite(b).all()):
+            raise InputError("StrapdownStepper.advance: IMU samples must be finite")
+        a_ext = np.zeros((len(t_ext), 3))
+        b_ext = np.zeros((len(t_ext), 3))
+        a_ext[1:] = a
+        b_ext[1:] = b
+        out = np.empty((len(t), _NX))
+        x = self._s[1 : 1 + _NX]
+        prev = self._s[1 + _NX :]
+        _run(t_ext, a_ext, b_ext, is_rate, x, prev, self._cs, self._hold, 1, out, 0, 1)
+        self._s[0] = t[-1]
+        return _trajectory(t, out)
+
 
 def _trajectory(t: FloatArray, out: FloatArray) -> NavTrajectory:
     return NavTrajectory(
