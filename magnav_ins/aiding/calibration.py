@@ -56,6 +56,9 @@ POINTS_PER_PARAMETER = 4
 MIN_HEADING_SECTORS = 8
 #: 3-D method: the thinnest principal spread of the readings over the widest; a level turn gives ~noise/|B_h|
 MIN_TILT_SPREAD_RATIO = 0.1
+#: the widest principal rms spread of the readings must be at least this fraction of |m| (a full level circle
+#: gives |B_h| / sqrt(2) / |B|, >= 5 % wherever |B_h| >= 7 % of |B|; a full tumble ~58 %)
+MIN_SPREAD_FRACTION = 0.05
 #: refuse a fit whose normalised design matrix is worse conditioned than this
 MAX_CONDITION = 1e8
 
@@ -319,10 +322,11 @@ def check_readings(m_nt: ArrayLike, method: str, source: str = "readings") -> Fl
     typical = float(np.median(np.linalg.norm(m - np.median(m, axis=0), axis=1))) + float(
         np.median(np.linalg.norm(m, axis=1))
     )
-    if spread[0] < 0.05 * typical:
+    if spread[0] < MIN_SPREAD_FRACTION * typical:
         raise InputError(
-            f"{source}: the readings barely change (spread {spread[0]:.1f} nT against |m| ~ {typical:.0f} nT): one "
-            f"heading/attitude only, so no rotation coverage; {_advice(method)}"
+            f"{source}: the readings barely change (rms spread {spread[0]:.0f} nT, {100 * spread[0] / typical:.1f} % "
+            f"of |m| ~ {typical:.0f} nT; need {100 * MIN_SPREAD_FRACTION:.0f} %): the sensor hardly rotated (one "
+            f"heading or attitude, or small motions only), so there is no rotation coverage; {_advice(method)}"
         )
     if method == "ellipsoid" and spread[2] < MIN_TILT_SPREAD_RATIO * spread[0]:
         raise InputError(
