@@ -99,9 +99,12 @@ def build_map(sc: Scenario) -> Any:
         try:
             if which == "hallway":
                 return synthetic.hallway_map(rng, origin=origin, **opts)
-            if which == "random_field":
+            if which in ("random_field", "road_network"):
+                streets_n = opts.pop("streets_north_m", None)
+                streets_e = opts.pop("streets_east_m", None)
+                step = float(opts.pop("step_m", 1.0))
                 shape = tuple(opts.pop("shape", (200, 200)))
-                return synthetic.random_field_map(
+                grid = synthetic.random_field_map(
                     shape,  # type: ignore[arg-type]
                     float(opts.pop("spacing_m", 100.0)),
                     float(opts.pop("correlation_length_m", 1000.0)),
@@ -111,9 +114,19 @@ def build_map(sc: Scenario) -> Any:
                     origin=origin,
                     altitude_m=float(opts.pop("altitude_m", origin[2])),
                 )
+                if opts:
+                    raise TypeError(f"unknown options {sorted(opts)}")
+                if which == "random_field":
+                    return grid
+                from ..maps.track import road_network_from_grid
+
+                # a street grid sampled every step_m along streets at the given northings / eastings (m)
+                return road_network_from_grid(grid, streets_n or [], streets_e or [], step)
         except TypeError as exc:
             raise ConfigError(f"{sc.where('map.options')}: {exc}") from None
-        raise ConfigError(f"{sc.where('map.path')}: unknown synthetic map {which!r} (hallway, random_field)")
+        raise ConfigError(
+            f"{sc.where('map.path')}: unknown synthetic map {which!r} (hallway, random_field, road_network)"
+        )
     from ..maps import io as maps_io
 
     try:
