@@ -119,3 +119,26 @@ def test_bad_window_and_sigma():
         var.feature_variability(fmap, -3.0)
     with pytest.raises(InputError, match="sigma"):
         var.crlb_raster(fmap, 0.0, 50.0)
+
+
+def test_variability_command_writers(tmp_path):
+    import xarray as xr
+
+    from magnav_ins.commands import map_variability as cmd
+
+    a = 0.3
+    fmap = _local(a * NN)
+    rasters = cmd.compute(fmap, 100.0, sigma=2.0)
+    out = tmp_path / "sub" / "var.nc"
+    cmd.write_netcdf(out, fmap, rasters, 100.0)
+    cmd.write_png(out.with_suffix(".png"), fmap, rasters, 100.0)
+    assert out.with_suffix(".png").stat().st_size > 1000
+    assert [p.name for p in out.parent.iterdir() if p.name.startswith(".")] == []  # no temporary left behind
+    with xr.open_dataset(out) as ds:
+        assert ds.attrs["window_m"] == 100.0
+        assert ds["feature_variability"].attrs["units"] == "nT^2"
+        np.testing.assert_allclose(ds["feature_variability"].values[10:-10, 10:-10], _ramp_ci(a, D, 5), rtol=1e-9)
+        np.testing.assert_allclose(ds["crlb_along_gradient"].values, 2.0 / a, rtol=1e-9)
+        np.testing.assert_allclose(ds["northing"].values, AX_N)
+    with pytest.raises(InputError, match="sigma"):
+        cmd.compute(fmap, 100.0, sigma=-1.0)
