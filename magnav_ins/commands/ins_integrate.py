@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 from pathlib import Path
 from typing import TextIO
 
@@ -34,6 +35,7 @@ INIT_KEYS = ("t", "lat_deg", "lon_deg", "h_m", "v_n", "roll_deg", "pitch_deg", "
 TRAJ_COLUMNS = ("t", "lat_deg", "lon_deg", "h_m", "vn", "ve", "vd", "roll_deg", "pitch_deg", "yaw_deg")
 #: output formats: time to 1 ns, lat/lon to 1e-10 deg (~0.01 mm), height 0.1 mm, velocity 1 um/s, angles 1e-9 deg
 _FMT = ("%.9f", "%.10f", "%.10f", "%.4f", "%.6f", "%.6f", "%.6f", "%.9f", "%.9f", "%.9f")
+_LINE = ",".join(_FMT) + "\n"
 #: a sample interval longer than this many times the median interval is a gap (unless --max-gap says otherwise)
 GAP_FACTOR = 5.0
 #: |INIT.t - first IMU time| allowed, s
@@ -63,7 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="M",
         help="hold the ellipsoidal height at M metres (the free vertical channel is unstable over hours)",
     )
-    p.add_argument("--chunk-rows", type=int, default=100_000, help=argparse.SUPPRESS)
+    p.add_argument("--chunk-rows", type=int, default=50_000, help=argparse.SUPPRESS)
     p.set_defaults(handler=run)
 
 
@@ -155,20 +157,21 @@ def _write(fh: TextIO, traj: NavTrajectory) -> None:
     table = np.column_stack(
         [traj.t, np.rad2deg(traj.lat), np.rad2deg(traj.lon), traj.h, traj.v_n, np.rad2deg([roll, pitch, yaw]).T]
     )
-    np.savetxt(fh, table, fmt=list(_FMT), delimiter=",")
+    fh.write((_LINE * len(table)) % tuple(table.ravel().tolist()))
 
 
 def integrate_file(
-    imu_path: Path,
-    init_path: Path,
-    out_path: Path,
+    imu_path: str | os.PathLike[str],
+    init_path: str | os.PathLike[str],
+    out_path: str | os.PathLike[str],
     *,
     max_gap: float | None = None,
     altitude_hold: float | None = None,
-    chunk_rows: int = 100_000,
+    chunk_rows: int = 50_000,
 ) -> int:
     """Mechanise ``imu_path`` from ``init_path`` into ``out_path`` (see the module docstring). Returns the number of
     trajectory rows written. Raises :class:`InputError` naming the file, row and column on bad input."""
+    imu_path, init_path, out_path = Path(imu_path), Path(init_path), Path(out_path)
     if max_gap is not None and not (math.isfinite(max_gap) and max_gap > 0):
         raise InputError(f"--max-gap: expected a positive number of seconds, got {max_gap}")
     init = read_init(init_path)
