@@ -145,3 +145,15 @@ def test_runs_nc_round_trip(tmp_path):
     doc = json.loads((tmp_path / "metrics.json").read_text())
     e = np.hypot(ds["err_north_m"].values[:, 0].astype(float), ds["err_east_m"].values[:, 0].astype(float))
     assert np.sqrt(np.mean(e**2)) == pytest.approx(doc["estimators"]["aided"]["rms_horizontal_m"], rel=1e-5)
+
+
+def test_plot_error_leaves_no_outputs(tmp_path, monkeypatch):
+    from magnav_ins.studies import plots
+
+    def boom(*a, **k):
+        raise RuntimeError("plot failed")
+
+    monkeypatch.setattr(plots, "plot_error_cdf", boom)
+    with pytest.raises(RuntimeError, match="plot failed"):
+        runner.run_study(StandInModel(), runs=2, seed=1, out_dir=tmp_path)
+    assert list(tmp_path.iterdir()) == []

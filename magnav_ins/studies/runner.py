@@ -345,30 +345,35 @@ def write_outputs(
     plots: bool = True,
     fmap: Any = None,
 ) -> list[Path]:
-    """Write ``metrics.json``, ``runs.nc``, ``report.md`` and figures into ``out_dir`` (each atomically).
-    Returns the paths written."""
+    """Write ``metrics.json``, ``runs.nc``, ``report.md`` and figures into ``out_dir``. Everything is first
+    written into a hidden staging folder inside ``out_dir`` and moved into place only when all of it succeeded
+    (``metrics.json`` last), so an error leaves no partial set of outputs. Returns the paths written."""
+    import os
+    import shutil
+    import tempfile
+
     from . import plots as P
     from . import reports
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
-    ds = runs_dataset(summaries, doc.get("name", ""))
-    nc = out / "runs.nc"
-    with atomic_path(nc) as tmp:
-        ds.to_netcdf(tmp, engine="netcdf4")
-    written.append(nc)
-    figures: list[Path] = []
-    if plots:
-        figures = P.study_figures(ds, out, fmap=fmap)
-        written += figures
-    rep = out / "report.md"
-    write_text_atomic(rep, reports.markdown_report(doc, [f.name for f in figures]))
-    written.append(rep)
-    mj = out / "metrics.json"
-    write_text_atomic(mj, json.dumps(doc, indent=2, allow_nan=False) + "\n")  # last: its presence means "done"
-    written.append(mj)
-    return written
+    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    try:
+        ds = runs_dataset(summaries, doc.get("name", ""))
+        with atomic_path(stage / "runs.nc") as tmp:
+            ds.to_netcdf(tmp, engine="netcdf4")
+        figures = P.study_figures(ds, stage, fmap=fmap) if plots else []
+        write_text_atomic(stage / "report.md", reports.markdown_report(doc, [f.name for f in figures]))
+        write_text_atomic(stage / "metrics.json", json.dumps(doc, indent=2, allow_nan=False) + "\n")
+        names = ["runs.nc", *(f.name for f in figures), "report.md", "metrics.json"]  # metrics.json last
+        written = []
+        for name in names:
+            os.chmod(stage / name, 0o644)
+            os.replace(stage / name, out / name)
+            written.append(out / name)
+        return written
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def run_study(
