@@ -142,3 +142,15 @@ def test_variability_command_writers(tmp_path):
         np.testing.assert_allclose(ds["northing"].values, AX_N)
     with pytest.raises(InputError, match="sigma"):
         cmd.compute(fmap, 100.0, sigma=-1.0)
+
+
+def test_feature_variability_agrees_with_the_matchers_window_version():
+    # peer: the matchers' per-window eq. 14 (aiding/matchers/_local.py), on a random field (no tied values)
+    _local_mod = pytest.importorskip("magnav_ins.aiding.matchers._local")
+    from magnav_ins.maps.synthetic import gaussian_random_field
+
+    vals = gaussian_random_field(NN.shape, D, 60.0, 5.0, np.random.default_rng(4))
+    c = var.feature_variability(_local(vals), 70.0).values  # h = 4 (rounded from 3.5)
+    for i, j in [(30, 40), (100, 20), (150, 140)]:
+        win = vals[i - 4 : i + 5, j - 4 : j + 5]
+        assert c[i, j] == pytest.approx(_local_mod.feature_variability(win, vals[i, j]), rel=1e-9)
