@@ -56,9 +56,10 @@ POINTS_PER_PARAMETER = 4
 MIN_HEADING_SECTORS = 8
 #: 3-D method: the thinnest principal spread of the readings over the widest; a level turn gives ~noise/|B_h|
 MIN_TILT_SPREAD_RATIO = 0.1
-#: the widest principal rms spread of the readings must be at least this fraction of |m| (a full level circle
-#: gives |B_h| / sqrt(2) / |B|, >= 5 % wherever |B_h| >= 7 % of |B|; a full tumble ~58 %)
-MIN_SPREAD_FRACTION = 0.05
+#: the widest principal rms spread of the readings must be at least this fraction of the field the rotation moves:
+#: |B_h| for the level methods (a full circle gives |B_h| / sqrt(2) ~ 0.71, a +-30 degree swing ~0.3), |B| for the
+#: ellipsoid (a full tumble gives |B| / sqrt(3) ~ 0.58). Without a reference field, |m| stands in for it.
+MIN_SPREAD_FRACTION = 0.2
 #: refuse a fit whose normalised design matrix is worse conditioned than this
 MAX_CONDITION = 1e8
 
@@ -297,9 +298,12 @@ def _number(value: Any, source: str, key: str, lo: float = -math.inf, hi: float 
 # ------------------------------------------------------------------------------------------ input checks
 
 
-def check_readings(m_nt: ArrayLike, method: str, source: str = "readings") -> FloatArray:
+def check_readings(
+    m_nt: ArrayLike, method: str, source: str = "readings", field_ned_nt: ArrayLike | None = None
+) -> FloatArray:
     """Validate readings (N, 3) nT for ``method``: shape, NaNs (rows named, 1-based), enough points, coverage.
 
+    ``field_ned_nt`` (the reference field, NED nT) sets the scale of the coverage test; without it ``|m|`` does.
     Raises :class:`InputError` (bad data) or :class:`ConfigError` (unknown method) with a one-line reason that
     says which method would fit.
     """
@@ -319,13 +323,16 @@ def check_readings(m_nt: ArrayLike, method: str, source: str = "readings") -> Fl
             f"({N_PARAMETERS[method]} unknowns); need at least {need}"
         )
     spread = _principal_spread(m)
-    typical = float(np.median(np.linalg.norm(m - np.median(m, axis=0), axis=1))) + float(
-        np.median(np.linalg.norm(m, axis=1))
-    )
-    if spread[0] < MIN_SPREAD_FRACTION * typical:
+    level = method in LEVEL_METHODS
+    if field_ned_nt is not None:
+        f = np.asarray(field_ned_nt, float).reshape(3)
+        moved, what = (float(np.hypot(f[0], f[1])), "|B_h|") if level else (float(np.linalg.norm(f)), "|B|")
+    else:
+        moved, what = float(np.median(np.linalg.norm(m, axis=1))), "|m|"
+    if spread[0] < MIN_SPREAD_FRACTION * moved:
         raise InputError(
-            f"{source}: the readings barely change (rms spread {spread[0]:.0f} nT, {100 * spread[0] / typical:.1f} % "
-            f"of |m| ~ {typical:.0f} nT; need {100 * MIN_SPREAD_FRACTION:.0f} %): the sensor hardly rotated (one "
+            f"{source}: the readings barely change (rms spread {spread[0]:.0f} nT = {100 * spread[0] / moved:.1f} % of "
+            f"{what} {moved:.0f} nT; need {100 * MIN_SPREAD_FRACTION:.0f} %): the sensor hardly rotated (one "
             f"heading or attitude, or small motions only), so there is no rotation coverage; {_advice(method)}"
         )
     if method == "ellipsoid" and spread[2] < MIN_TILT_SPREAD_RATIO * spread[0]:
@@ -522,7 +529,8 @@ def calibrate(
     Level methods assume the body z axis points down during the turns (body x-y horizontal). Bad input raises
     :class:`InputError` (one line, says why and which method fits); an unknown method :class:`ConfigError`.
     """
-    m = check_readings(m_nt, method, source)
+    if method not in METHODS:
+        raise ConfigError(f"unknown calibration method {method!r}; expected one of {', '.join(METHODS)}")
     f = np.asarray(field_ned_nt, float).reshape(3)
     if not np.all(np.isfinite(f)) or np.linalg.norm(f) <= 0:
         raise InputError(f"reference field {f}: expected a finite non-zero NED vector in nT")
@@ -532,6 +540,7 @@ def calibrate(
             f"reference horizontal field {bh:.0f} nT is < 5 % of |B| = {total:.0f} nT (near a magnetic pole): a level "
             "turn cannot calibrate the horizontal axes here; use --method ellipsoid with tumbling data"
         )
+    m = check_readings(m_nt, method, source, f)
     cond = 1.0
     if method == "swinging":
         A, b = fit_swinging(m, f)
