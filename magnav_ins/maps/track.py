@@ -127,6 +127,7 @@ class TrackMap:
         self._s_global = s
         self.heading = self._heading()
         self._tree = cKDTree(np.column_stack([self.northing, self.easting]))
+        self._grad: FloatArray | None = None
 
     # ------------------------------------------------------------------ geometry
     def __len__(self) -> int:
@@ -208,10 +209,11 @@ class TrackMap:
     def gradient_ne(self, lat: ArrayLike, lon: ArrayLike, h: ArrayLike | None = None) -> FloatArray:
         """Along-track derivative at the nearest point projected on north/east, unit per metre: (M, 2) or
         (M, 3, 2); NaN off the map. The cross-track derivative is unobserved and reported as 0."""
-        dfds = self._neighbour_slope(self.values)
-        u = np.column_stack([np.cos(self.heading), np.sin(self.heading)])
-        grad = dfds[:, None] * u if dfds.ndim == 1 else dfds[:, :, None] * u[:, None, :]
-        return self._masked(grad, lat, lon)
+        if self._grad is None:  # per-point gradients, computed once
+            dfds = self._neighbour_slope(self.values)
+            u = np.column_stack([np.cos(self.heading), np.sin(self.heading)])
+            self._grad = dfds[:, None] * u if dfds.ndim == 1 else dfds[:, :, None] * u[:, None, :]
+        return self._masked(self._grad, lat, lon)
 
     def covers(self, lat: ArrayLike, lon: ArrayLike) -> NDArray[np.bool_]:
         """True within ``max_distance_m`` of a point whose value is finite."""
