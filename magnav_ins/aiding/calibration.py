@@ -371,8 +371,8 @@ def _check_heading_coverage(m_h: FloatArray, centre: FloatArray, method: str, so
 
 @dataclass(frozen=True)
 class QuadricFit:
-    """Result of a conic/quadric fit ``|A (x - b)| = r``: ``A`` symmetric positive definite, ``b`` centre,
-    ``condition`` of the column-normalised design matrix, ``k`` Shockley's ``b^T Q b`` in the fitted frame."""
+    """Result of a conic/quadric fit ``|A (x - b)| = r``: ``A`` symmetric positive definite, ``b`` centre (in the
+    units of ``x``), ``condition`` of the column-normalised design matrix."""
 
     A: FloatArray
     b: FloatArray
