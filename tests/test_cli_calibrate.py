@@ -100,3 +100,24 @@ def test_missing_column_and_file_and_bad_date(main, tmp_path, capsys):
     assert "no such file" in _err(main, capsys, ["calibrate", str(tmp_path / "none.csv"), *SITE])
     bad_date = [*SITE[:6], "--date", "11/08/2011"]
     assert "YYYY-MM-DD" in _err(main, capsys, ["calibrate", str(p), *bad_date])
+
+
+def test_registered_in_dispatcher():
+    assert "calibrate" in cli.COMMAND_MODULES
+
+
+def test_ellipsoid_on_tumbling_data(main, field, tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(10)
+    C3 = np.array([[1.05, 0.02, -0.03], [0.02, 0.96, 0.01], [-0.03, 0.01, 1.02]])
+    B_b = Rotation.random(800, random_state=rng).apply(field, inverse=True)
+    m = B_b @ C3.T + B + 100.0 * rng.standard_normal(B_b.shape)
+    out = tmp_path / "cal.json"
+    assert (
+        main(["calibrate", str(_write(tmp_path / "r.csv", m)), "--method", "ellipsoid", *SITE, "--out", str(out)]) == 0
+    )
+    cal = MagCalibration.from_json(out)
+    np.testing.assert_allclose(cal.A, np.linalg.inv(C3), atol=3e-3)
+    np.testing.assert_allclose(cal.b, B, atol=60.0)
+    assert cal.after.std_nt < 150.0 < 1000.0 < cal.before.std_nt
