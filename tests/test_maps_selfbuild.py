@@ -81,8 +81,16 @@ def test_off_grid_and_nan_readings_are_skipped():
     assert acc.add(lat, lon, np.array([1.0, 2.0, np.nan])) == 1
     with pytest.raises(InputError):
         acc.add(lat, lon, np.zeros(2))
-    with pytest.raises(MapError, match="2 reading"):
-        acc.result(min_count=2)
+    from magnav_ins.core.types import FieldReadings
+
+    rd = FieldReadings(t=np.arange(3.0), value=np.ones((3, 3)), sigma=1.0, kind="vector_field_nt")
+    with pytest.raises(InputError, match="vector_field_nt"):
+        acc.add_readings(rd, lat, lon)
+    rd = FieldReadings(t=np.arange(3.0), value=np.array([5.0, 6.0, 7.0]), sigma=1.0, kind="total_field_anomaly_nt")
+    assert acc.add_readings(rd, lat, lon) == 2
+    with pytest.raises(MapError, match="3 reading"):
+        acc.result(min_count=3)
+    assert acc.result(min_count=2).count.max() == 2
 
 
 def test_amalgamation_keeps_the_better_cell():

@@ -107,3 +107,17 @@ def test_bad_inputs():
     tm = TrackMap(lat, lon, 0.0, np.zeros(5), kind="total_field_anomaly_nt")
     with pytest.raises(InputError, match="step_m"):
         tm.resample(0.0)
+
+
+def test_from_readings_drops_stops_and_distance_samples():
+    from magnav_ins.core.types import FieldReadings
+
+    s, _, lat, lon = _line(0.2, n_pts=30, step=1.7)
+    # the vehicle stops at point 10 for 25 readings (repeated positions), as at a traffic signal
+    rep = np.r_[np.arange(10), np.full(25, 10), np.arange(11, 30)]
+    rd = FieldReadings(t=np.arange(rep.size) * 0.02, value=3.0 * s[rep], sigma=1.0, kind="total_field_anomaly_nt")
+    tm = TrackMap.from_readings(rd, lat[rep], lon[rep], 200.0)
+    assert len(tm) == 30
+    dm = TrackMap.from_readings(rd, lat[rep], lon[rep], 200.0, step_m=0.5)
+    np.testing.assert_allclose(dm.values, 3.0 * dm.along_track_m, atol=1e-6)
+    assert dm.metadata["reading_sigma"] == 1.0

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from ..core.errors import InputError, MapError
 from ..core.frames import geodetic_to_ned
-from ..core.types import FieldKind
+from ..core.types import FieldKind, FieldReadings
 from .grid import GridMap
 
 FloatArray = NDArray[np.float64]
@@ -168,6 +168,12 @@ class MapAccumulator:
             m2_b[:, c] = np.bincount(idx, weights=dev * dev, minlength=size)
         self._merge(n_b.astype(np.int64), mean_b, m2_b)
         return int(idx.size)
+
+    def add_readings(self, readings: FieldReadings, lat: ArrayLike, lon: ArrayLike) -> int:
+        """:meth:`add` for a :class:`FieldReadings` batch whose positions (rad) are known; the kinds must match."""
+        if readings.kind is not self.kind:
+            raise InputError(f"add_readings: readings are {readings.kind.value}, the map is {self.kind.value}")
+        return self.add(lat, lon, readings.value)
 
     def _merge(self, n_b: NDArray[np.int64], mean_b: FloatArray, m2_b: FloatArray) -> None:
         n_a = self.count.reshape(-1)
