@@ -69,6 +69,7 @@ class Surface:
     step: float
     variability: float
     sigma2: float
+    half: tuple[float, float] = (np.inf, np.inf)
 
 
 @dataclass
@@ -97,6 +98,8 @@ class LikelihoodMatcher:
     min_variability: float = 1.0
     max_fix_sigma_m: float | None = None
     max_nodes: int = 2_000_000
+    both_directions: bool = True
+    track_sigma_m: float = 1.0
     name: str = ""
 
     METHODS: ClassVar[tuple[str, ...]] = ("ml", "mlr", "abl")
@@ -138,11 +141,13 @@ class LikelihoodMatcher:
             if not np.isfinite(half_n):
                 return "prior covariance not finite"
         else:
-            extent = _map_half_extent(fmap, frame)
+            extent = (np.inf, np.inf) if _is_track(fmap) else _map_half_extent(fmap, frame)
             if extent is None:
                 return "search_window=False needs a grid map with known extent"
             half_n, half_e = extent
         nz = len(z)
+        if _is_track(fmap):
+            return self._track_surface(fmap, frame, z, dn, de, half_n, half_e, float(rd.sigma))
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
         if native is not None:
             n_ax, e_ax, v_last = native
@@ -180,7 +185,65 @@ class LikelihoodMatcher:
             mm = mm - mm.mean(axis=0, keepdims=True)
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
-        return Surface(frame, logl, gn.ravel(), ge.ravel(), gn.shape, step, variability, s2)
+        return Surface(frame, logl, gn.ravel(), ge.ravel(), gn.shape, step, variability, s2, (half_n, half_e))
+
+    def _track_surface(
+        self,
+        fmap: FieldMap,
+        frame: WorkFrame,
+        z: FloatArray,
+        dn: FloatArray,
+        de: FloatArray,
+        half_n: float,
+        half_e: float,
+        sigma: float,
+    ) -> Surface | str:
+        """Likelihood at the points of a road map (Shockley 003 sec. 4.3-4.5): the section of readings is slid
+        along the road; reading k sits ``d_k`` metres (INS-travelled distance to the last reading) before the
+        candidate point, on the same segment (both travel directions when ``both_directions``)."""
+        tn, te = frame.to_ne(fmap.lat, fmap.lon)  # type: ignore[attr-defined]
+        sel = np.flatnonzero((np.abs(tn) <= half_n) & (np.abs(te) <= half_e))
+        if sel.size == 0:
+            return "off the map: no road points in the search window"
+        vals = np.asarray(fmap.values, float).reshape(len(tn), -1)  # type: ignore[attr-defined]
+        seg_run = np.cumsum(np.r_[True, np.diff(fmap.segment_id) != 0]) - 1  # type: ignore[attr-defined]
+        s_at = np.asarray(fmap.along_track_m, float)  # type: ignore[attr-defined]
+        big = 10.0 * (float(np.max(s_at)) + 1.0)
+        s_glob = s_at + seg_run * big
+        step_d = np.hypot(np.diff(dn), np.diff(de))
+        d_back = np.concatenate([np.cumsum(step_d[::-1])[::-1], [0.0]])  # distance from reading k to the last
+        dirs = (1.0, -1.0) if self.both_directions else (1.0,)
+        nz = len(z)
+        ms = []
+        for sgn in dirs:
+            target = s_glob[sel][None, :] - sgn * d_back[:, None]  # (nz, M)
+            run = seg_run[sel][None, :]
+            lo = np.clip(np.searchsorted(s_glob, target, "right") - 1, 0, len(s_glob) - 1)
+            hi = np.clip(lo + 1, 0, len(s_glob) - 1)
+            ok = (seg_run[lo] == run) & (seg_run[hi] == run) & (target >= s_glob[lo]) & (target <= s_glob[hi])
+            span = np.where(hi > lo, s_glob[hi] - s_glob[lo], 1.0)
+            f = np.clip((target - s_glob[lo]) / span, 0.0, 1.0)[..., None]
+            m = (1.0 - f) * vals[lo] + f * vals[hi]
+            m[~ok] = np.nan
+            ms.append(m)
+        m = np.concatenate(ms, axis=1)  # (nz, M * ndirs, c)
+        cn = np.tile(tn[sel], len(dirs))
+        ce = np.tile(te[sel], len(dirs))
+        s2 = sigma**2 + self.map_sigma**2
+        k0 = int(np.argmin(tn[sel] ** 2 + te[sel] ** 2))
+        center = vals[sel][k0]
+        variability = feature_variability(vals[sel], center) if np.all(np.isfinite(center)) else 0.0
+        zz, mm = z[:, None, :], m
+        if self.difference and nz > 1:
+            zz, mm = np.diff(zz, axis=0), np.diff(mm, axis=0)
+            s2 = 2.0 * s2
+        if self.demean and len(zz) > 1:
+            zz = zz - zz.mean(axis=0, keepdims=True)
+            mm = mm - mm.mean(axis=0, keepdims=True)
+        logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
+        logl = np.where(np.isfinite(logl), logl, -np.inf)
+        step = float(np.median(np.diff(s_at)[np.diff(seg_run) == 0])) if len(s_at) > 1 else 1.0
+        return Surface(frame, logl, cn, ce, None, step, variability, s2, (half_n, half_e))
 
     # ------------------------------------------------------------------ decision
     def match(self, window: MatchWindow, fmap: FieldMap) -> Fix:
@@ -231,9 +294,11 @@ class LikelihoodMatcher:
             kb = int(np.argmax(mass))
             n_fix, e_fix, score = float(surf.n[kb]), float(surf.e[kb]), float(mass[kb])
         cov = moments_about(p, surf.n, surf.e, n_fix, e_fix) + np.eye(2) * surf.step**2 / 12.0
+        if surf.shape is None:  # road map: the vehicle is somewhere across the road
+            cov = cov + np.eye(2) * self.track_sigma_m**2
         max_sig = self.max_fix_sigma_m
         if max_sig is None:
-            max_sig = 0.25 * min(np.ptp(surf.n), np.ptp(surf.e)) if surf.shape is not None else np.inf
+            max_sig = 0.25 * min(surf.half)
         sig = float(np.sqrt(np.linalg.eigvalsh(cov)[-1]))
         if sig > max_sig:
             return Fix.no_fix(
@@ -255,6 +320,10 @@ def _bin_mass(p: FloatArray, surf: Surface, bin_size_m: float) -> FloatArray:
     tree = cKDTree(pts)
     groups = tree.query_ball_point(pts, r=bin_size_m / 2.0)
     return np.array([p[g].sum() for g in groups])
+
+
+def _is_track(fmap: FieldMap) -> bool:
+    return hasattr(fmap, "along_track_m") and hasattr(fmap, "segment_id") and hasattr(fmap, "nearest_ne")
 
 
 def _map_half_extent(fmap: FieldMap, frame: WorkFrame) -> tuple[float, float] | None:
