@@ -616,6 +616,9 @@ def integrate_batch(
     if gyro_b.ndim != 3 or gyro_b.shape[1:] != (n, 3) or accel_b.shape != gyro_b.shape:
         raise InputError(f"integrate_batch: gyro_b {gyro_b.shape} and accel_b {accel_b.shape} must both be (R, {n}, 3)")
     r_runs = gyro_b.shape[0]
+    if not (np.isfinite(gyro_b).all() and np.isfinite(accel_b).all()):
+        r, k = np.argwhere(~(np.isfinite(gyro_b).all(axis=2) & np.isfinite(accel_b).all(axis=2)))[0]
+        raise InputError(f"integrate_batch: run {r} sample {k} (t={t[k]!r}) is not finite")
     if int(decimate) < 1:
         raise InputError(f"integrate_batch: decimate must be >= 1, got {decimate}")
     x0 = np.empty((r_runs, _NX))
