@@ -154,3 +154,22 @@ def test_feature_variability_agrees_with_the_matchers_window_version():
     for i, j in [(30, 40), (100, 20), (150, 140)]:
         win = vals[i - 4 : i + 5, j - 4 : j + 5]
         assert c[i, j] == pytest.approx(_local_mod.feature_variability(win, vals[i, j]), rel=1e-9)
+
+
+def test_feature_variability_along_a_track_map():
+    from magnav_ins.maps.track import TrackMap
+
+    # two roads, values a*s, 1 m sampling: interior points see 2h neighbours at distances 1..h either side
+    fmap = _local(NN)
+    n1 = np.arange(0.0, 300.0, 1.0)
+    lat, lon = fmap.from_local(np.r_[n1, np.full(200, 500.0)], np.r_[np.full(300, 100.0), np.arange(200.0)])
+    a = 0.5
+    vals = np.r_[a * n1, a * np.arange(200.0)]
+    tm = TrackMap(lat, lon, 100.0, vals, kind="total_field_anomaly_nt", segment_id=np.r_[np.zeros(300), np.ones(200)])
+    c = var.feature_variability_along_track(tm, window_m=20.0)
+    h = 10
+    expect = a**2 * 2 * np.sum(np.arange(1, h + 1) ** 2) / (2 * h)
+    np.testing.assert_allclose(c[20:280], expect, rtol=1e-6)
+    np.testing.assert_allclose(c[320:480], expect, rtol=1e-6)
+    # the end of a road has only one side (and never borrows points from the next road)
+    assert c[299] == pytest.approx(a**2 * np.sum(np.arange(1, h + 1) ** 2) / h, rel=1e-6)

@@ -184,6 +184,11 @@ class TrackMap:
         return int(self._run[-1]) + 1
 
     @property
+    def run_index(self) -> NDArray[np.int64]:
+        """(N,) 0-based index of each point's segment run, in order of appearance (non-decreasing)."""
+        return self._run.copy()
+
+    @property
     def total_length_m(self) -> float:
         """Sum of the segment lengths (m)."""
         return float(np.sum(self.along_track_m[self._last]))

@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -146,6 +147,36 @@ def feature_variability_track(
     sq = np.sum((around - centre[:, None, :]) ** 2, axis=-1)  # (N, M), NaN where off the map
     with np.errstate(invalid="ignore"):
         return np.nanmean(np.where(np.isfinite(sq), sq, np.nan), axis=1) if sq.size else np.full(lat_a.shape, np.nan)
+
+
+def feature_variability_along_track(tmap: Any, window_m: float) -> FloatArray:
+    """``C_i`` (unit^2, (N,)) at every point of a :class:`~magnav_ins.maps.track.TrackMap`, the window being the
+    points of the same segment within ``window_m / 2`` of along-track distance (a road map is 1-D). Prefix sums,
+    O(N)."""
+    w = float(window_m)
+    if not np.isfinite(w) or w <= 0.0:
+        raise InputError(f"window_m: expected a positive window width in metres, got {window_m!r}")
+    v = np.asarray(tmap.values, float)
+    v = v[:, None] if v.ndim == 1 else v
+    run = np.asarray(tmap.run_index, float)
+    s = np.asarray(tmap.along_track_m, float)
+    span = float(np.max(s)) + 2.0 * w + 1.0
+    key = run * span + s  # increasing: segments in order, distance within each
+    eps = 1e-6  # m: points exactly at the window edge are in, whatever the rounding of s
+    lo = np.searchsorted(key, key - 0.5 * w - eps, side="left")
+    hi = np.searchsorted(key, key + 0.5 * w + eps, side="right")
+    ok = np.all(np.isfinite(v), axis=1)
+    n = (np.concatenate([[0], np.cumsum(ok)])[hi] - np.concatenate([[0], np.cumsum(ok)])[lo]) - 1.0
+    c_i = np.zeros(v.shape[0])
+    for c in range(v.shape[1]):
+        x = np.where(ok, v[:, c] - np.mean(v[ok, c]), 0.0) if ok.any() else np.zeros(v.shape[0])
+        p1 = np.concatenate([[0.0], np.cumsum(x)])
+        p2 = np.concatenate([[0.0], np.cumsum(x * x)])
+        s1, s2 = p1[hi] - p1[lo], p2[hi] - p2[lo]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c_i += x * x - 2.0 * x * (s1 - x) / n + (s2 - x * x) / n
+    c_i[~ok | (n < 0.5)] = np.nan
+    return c_i
 
 
 # ---------------------------------------------------------------------------------------------- gradients
