@@ -173,3 +173,39 @@ def test_feature_variability_along_a_track_map():
     np.testing.assert_allclose(c[320:480], expect, rtol=1e-6)
     # the end of a road has only one side (and never borrows points from the next road)
     assert c[299] == pytest.approx(a**2 * np.sum(np.arange(1, h + 1) ** 2) / h, rel=1e-6)
+
+
+def test_variability_command_end_to_end(tmp_path, monkeypatch, capsys):
+    """The sub-command's handler on a parser of its own, with map loading stubbed to return a known ramp map."""
+    import argparse
+    import sys
+    import types
+
+    import xarray as xr
+
+    import magnav_ins.maps
+    from magnav_ins.commands import map_variability as cmd
+    from magnav_ins.core.errors import MapError
+
+    ramp = _local(0.3 * NN)
+
+    def load_map(path, **_):
+        if path != "ramp.nc":
+            raise MapError(f"{path}: no such map")
+        return ramp
+
+    fake = types.SimpleNamespace(load_map=load_map)
+    monkeypatch.setitem(sys.modules, "magnav_ins.maps.io", fake)
+    monkeypatch.setattr(magnav_ins.maps, "io", fake, raising=False)
+    parser = argparse.ArgumentParser()
+    cmd.add_parser(parser.add_subparsers())
+    out = tmp_path / "v.nc"
+    args = parser.parse_args(["variability", "ramp.nc", "--window", "100", "--out", str(out), "--sigma", "2"])
+    assert args.handler(args) == 0
+    assert "feature_variability" in capsys.readouterr().out
+    with xr.open_dataset(out) as ds:
+        np.testing.assert_allclose(ds["crlb_along_gradient"].values, 2.0 / 0.3, rtol=1e-9)
+    assert out.with_suffix(".png").exists()
+    args = parser.parse_args(["variability", "ramp.nc", "--window", "-1", "--out", str(out)])
+    with pytest.raises(InputError, match="--window"):
+        args.handler(args)
