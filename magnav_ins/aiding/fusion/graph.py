@@ -1,0 +1,428 @@
+"""Factor-graph fuser on GTSAM: IMU preintegration between fix times, robust position factors, iSAM2 online and
+a batch Levenberg-Marquardt smoother offline. The ONLY module of the package that imports gtsam.
+
+Graph (Forster et al. 2017, "On-Manifold Preintegration for Real-Time Visual-Inertial Odometry", eqs. 26-44;
+Kaess et al. 2012 for iSAM2): a node ``(X_k: Pose3, V_k: velocity, B_k: ConstantBias)`` at the initial time and at every
+fix time; a ``CombinedImuFactor`` between consecutive nodes (bias random walk inside the factor); a ``GPSFactor`` on
+``X_k``'s translation for each accepted fix, its noise ``noiseModel.Robust(Huber(k), Gaussian(cov))`` with the fix's
+2x2 north/east covariance and a vertical sigma (a height source if given, else loose); a prior on node 0 from the
+initial :class:`NavEstimate`.
+
+Frames. GTSAM works here in an Earth-fixed Cartesian frame L: the NED axes at the initial position, frozen to the
+Earth (``PreintegrationCombinedParams.MakeSharedD(g)``: nav = NED, gravity +down). L is Earth-fixed, so the Earth rate
+is the constant ``omega_ie_L`` (``setOmegaCoriolis``) and there is no transport rate; the plumb-line gravity turns
+as the vehicle moves away from the origin (1 mrad per 6.4 km), which a single ``n_gravity`` cannot express, so the
+specific force fed to the preintegrator is compensated: ``f_b' = f_b + C_bL (g_L(r) - g_L(0))`` with ``r`` and ``C_bL``
+the current prediction (updated every ``gravity_update_s``). Body = FRD; ``Pose3`` rotation = ``C_Lb``; quaternion
+order never leaves this module (rotations cross as matrices). The public face speaks :class:`NavState` /
+:class:`NavEstimate` in WGS-84: L <-> geodetic through :class:`common.LocalFrame`.
+
+Covariance. After each fix the joint marginal of ``(X_k, V_k, B_k)`` from iSAM2 is mapped to LAYOUT_15
+(pos NED m, vel NED m/s, att NED rad, accel bias m/s^2, gyro bias rad/s). GTSAM's perturbations are "truth = estimate
+(+) xi" with the pose increment in body axes, so ``pos_n = C_nL C_Lb xi_t``, ``att_n = C_nL C_Lb xi_R``,
+``vel_n = C_nL xi_v``. Between fixes :meth:`estimate` returns ``pim.predict`` with the covariance of a temporary
+graph marginal (the next node added without a fix factor), computed lazily and cached.
+
+Latency. IMU samples since the last node are kept; a fix stamped in the past (but after the last node) splits them at
+the fix time (the sample straddling it is cut in two), the node is placed at the fix time and the rest is
+re-integrated, so a late fix is applied exactly as if it had arrived on time. A fix older than the last node is
+rejected with a reason.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+from dataclasses import dataclass
+from pathlib import Path
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, V, X
+
+from ...core.errors import ConfigError, InputError
+from ...core.types import LAYOUT_15, Fix, ImuBatch, Innovation, NavEstimate, NavState, NavTrajectory
+from ...ins.earth import omega_ie_n
+from ..gating import ChiSquareGate, nis
+from .common import ImuNoise, LocalFrame, check_time, fix_problem, rejected, residual_ne, symmetrise
+
+FloatArray = np.ndarray
+_TIME_TOL = 1e-9
+_RW_FLOOR = 1e-12  # bias random walk for random-constant biases (keeps the factor's covariance regular)
+
+
+@dataclass
+class _Node:
+    t: float
+    state: gtsam.NavState
+    bias: gtsam.imuBias.ConstantBias
+
+
+class GraphFuser:
+    """GTSAM factor-graph fuser (iSAM2 online; :meth:`smooth` runs batch LM over the whole graph).
+
+    ``init``: initial state and its LAYOUT_15 covariance; ``noise``: IMU noise (continuous-time densities and bias
+    sigmas); ``gate_probability``: chi-square gate on the 2-dof north/east NIS; ``huber_k``: Huber threshold in
+    whitened units; ``vertical_sigma_m``: sigma of the vertical component of a fix without a height source (the
+    measured height is then the predicted one); ``factorization``: "QR" (default; GTSAM's Cholesky reports an
+    indeterminate system on poorly constrained graphs) or "CHOLESKY"; ``gravity_update_s``: period of the
+    gravity-direction compensation.
+    """
+
+    name = "graph"
+
+    def __init__(
+        self,
+        init: NavEstimate,
+        noise: ImuNoise,
+        *,
+        gate_probability: float = 0.9999,
+        huber_k: float = 3.0,
+        vertical_sigma_m: float = 1000.0,
+        factorization: str = "QR",
+        relinearize_skip: int = 1,
+        gravity_update_s: float = 0.1,
+        integration_sigma: float = 1e-4,
+    ) -> None:
+        P0 = np.asarray(init.P, dtype=float)
+        if P0.shape[0] < LAYOUT_15.size or P0.shape[0] != P0.shape[1]:
+            raise ConfigError(f"GraphFuser: initial covariance must be at least 15x15, got {P0.shape}")
+        if factorization.upper() not in ("QR", "CHOLESKY"):
+            raise ConfigError(f"GraphFuser: factorization must be 'QR' or 'CHOLESKY', got {factorization!r}")
+        self.noise = noise
+        self.gate = ChiSquareGate(gate_probability, 2)
+        self.huber_k = float(huber_k)
+        self.vertical_sigma_m = float(vertical_sigma_m)
+        self.gravity_update_s = float(gravity_update_s)
+        nav0 = init.nav
+        self.frame = LocalFrame(nav0.lat, nav0.lon, nav0.h)
+        self._g0_L = self.frame.gravity_L(np.zeros(3))
+
+        p = gtsam.PreintegrationCombinedParams.MakeSharedD(float(self._g0_L[2]))
+        p.setAccelerometerCovariance(np.eye(3) * noise.accel_noise**2)
+        p.setGyroscopeCovariance(np.eye(3) * noise.gyro_noise**2)
+        p.setIntegrationCovariance(np.eye(3) * integration_sigma**2)
+        p.setBiasAccCovariance(np.eye(3) * max(noise.accel_bias_rw, _RW_FLOOR) ** 2)
+        p.setBiasOmegaCovariance(np.eye(3) * max(noise.gyro_bias_rw, _RW_FLOOR) ** 2)
+        p.setOmegaCoriolis(omega_ie_n(nav0.lat))  # the Earth rate, constant in the Earth-fixed frame L
+        self._params = p
+
+        ip = gtsam.ISAM2Params()
+        ip.setFactorization(factorization.upper())
+        ip.relinearizeSkip = int(relinearize_skip)
+        self._isam = gtsam.ISAM2(ip)
+        self._factorization = factorization.upper()
+        self._graph = gtsam.NonlinearFactorGraph()  # every factor, for the batch smoother
+        self._node_times: list[float] = []
+
+        # node 0 and its priors
+        state0 = self._to_gtsam(nav0)
+        b_a = init.bias_a if hasattr(init, "bias_a") else np.zeros(3)
+        b_g = init.bias_g if hasattr(init, "bias_g") else np.zeros(3)
+        bias0 = gtsam.imuBias.ConstantBias(np.asarray(b_a, float), np.asarray(b_g, float))
+        Pl = self._layout_to_gtsam_cov(symmetrise(P0[:15, :15], 1e-12), state0)
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.PriorFactorPose3(X(0), state0.pose(), gtsam.noiseModel.Gaussian.Covariance(Pl[:6, :6])))
+        graph.add(gtsam.PriorFactorVector(V(0), state0.velocity(), gtsam.noiseModel.Gaussian.Covariance(Pl[6:9, 6:9])))
+        graph.add(gtsam.PriorFactorConstantBias(B(0), bias0, gtsam.noiseModel.Gaussian.Covariance(Pl[9:15, 9:15])))
+        values = gtsam.Values()
+        values.insert(X(0), state0.pose())
+        values.insert(V(0), state0.velocity())
+        values.insert(B(0), bias0)
+        self._update(graph, values)
+        self._k = 0
+        self._node = _Node(float(nav0.t), state0, bias0)
+        self._node_times.append(float(nav0.t))
+        self._P_node = self._node_covariance(0)
+        self._t = float(nav0.t)
+        self._buf_t: list[float] = []  # end time of each buffered sample
+        self._buf_dt: list[float] = []
+        self._buf_w: list[np.ndarray] = []
+        self._buf_f: list[np.ndarray] = []
+        self._pim = self._new_pim()
+        self._comp_t = -np.inf
+        self._df_b = np.zeros(3)
+        self._pred_cov_cache: tuple[float, FloatArray] | None = None
+        self.innovations: list[Innovation] = []
+
+    # ----------------------------------------------------------------------------------- frame conversions
+    def _to_gtsam(self, nav: NavState) -> gtsam.NavState:
+        r_L = self.frame.to_L(nav.lat, nav.lon, nav.h)
+        C_nL = self.frame.C_nL(nav.lat, nav.lon)
+        from ...core.frames import C_nb_from_q
+
+        C_Lb = C_nL.T @ C_nb_from_q(nav.q_nb)
+        return gtsam.NavState(gtsam.Rot3(C_Lb), np.asarray(r_L, float), C_nL.T @ nav.v_n)
+
+    def _from_gtsam(self, t: float, s: gtsam.NavState) -> NavState:
+        from scipy.spatial.transform import Rotation
+
+        lat, lon, h = self.frame.to_geodetic(s.position())
+        C_nL = self.frame.C_nL(float(lat), float(lon))
+        C_nb = C_nL @ s.attitude().matrix()
+        return NavState(
+            float(t), float(lat), float(lon), float(h), C_nL @ s.velocity(), Rotation.from_matrix(C_nb).as_quat()
+        )
+
+    def _J_gtsam_to_layout(self, s: gtsam.NavState) -> FloatArray:
+        """Maps GTSAM's [xi_R(3), xi_t(3) body; v(3) L; b_a(3), b_g(3)] to LAYOUT_15 (pos, vel, att NED, b_a, b_g)."""
+        lat, lon, _ = self.frame.to_geodetic(s.position())
+        C_nL = self.frame.C_nL(float(lat), float(lon))
+        C_nb = C_nL @ s.attitude().matrix()
+        J = np.zeros((15, 15))
+        J[0:3, 3:6] = C_nb  # pos
+        J[3:6, 6:9] = C_nL  # vel
+        J[6:9, 0:3] = C_nb  # att
+        J[9:15, 9:15] = np.eye(6)
+        return J
+
+    def _layout_to_gtsam_cov(self, P15: FloatArray, s: gtsam.NavState) -> FloatArray:
+        J = self._J_gtsam_to_layout(s)
+        Ji = np.linalg.inv(J)
+        return symmetrise(Ji @ P15 @ Ji.T, 1e-14)
+
+    # --------------------------------------------------------------------------------------------- helpers
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        for i in range(graph.size()):
+            self._graph.add(graph.at(i))
+        self._isam.update(graph, values)
+
+    def _new_pim(self) -> gtsam.PreintegratedCombinedMeasurements:
+        return gtsam.PreintegratedCombinedMeasurements(self._params, self._node.bias)
+
+    def _integrate(self, pim, node: _Node, t_end: float, dt: float, w: FloatArray, f: FloatArray, comp: dict) -> None:
+        if t_end - comp["t"] >= self.gravity_update_s:
+            pred = pim.predict(node.state, node.bias)
+            dg_L = self.frame.gravity_L(pred.position()) - self._g0_L
+            comp["df_b"] = pred.attitude().matrix().T @ dg_L
+            comp["t"] = t_end
+        pim.integrateMeasurement(f + comp["df_b"], w, dt)
+
+    def _node_covariance(self, k: int) -> FloatArray:
+        """Joint marginal of node k in GTSAM order [xi_R, xi_t, v, b_a, b_g] (stored) and in LAYOUT_15 (returned)."""
+        jm = self._isam.jointMarginalCovariance([X(k), V(k), B(k)]).fullMatrix()
+        self._P_node_g = symmetrise(jm)
+        est = self._isam.calculateEstimate()
+        state = gtsam.NavState(est.atPose3(X(k)), est.atVector(V(k)))
+        J = self._J_gtsam_to_layout(state)
+        return symmetrise(J @ jm @ J.T)
+
+    def _predict_cov_g(self, pim, pred: gtsam.NavState) -> FloatArray:
+        """Covariance (GTSAM order) of a new node at the end of ``pim``: the IMU factor linearised at
+        (last node, prediction), whitened ``A_old dx_old + A_new dx_new = b``, so
+        ``P_new = A_new^-1 (A_old P_old A_old^T + I) A_new^-T``."""
+        k0, k1 = self._k, self._k + 1
+        fac = gtsam.CombinedImuFactor(X(k0), V(k0), X(k1), V(k1), B(k0), B(k1), pim)
+        vals = gtsam.Values()
+        vals.insert(X(k0), self._node.state.pose())
+        vals.insert(V(k0), self._node.state.velocity())
+        vals.insert(B(k0), self._node.bias)
+        vals.insert(X(k1), pred.pose())
+        vals.insert(V(k1), pred.velocity())
+        vals.insert(B(k1), self._node.bias)
+        A, _ = fac.linearize(vals).jacobian()  # columns: X0 6, V0 3, X1 6, V1 3, B0 6, B1 6
+        A_old = np.hstack([A[:, 0:9], A[:, 18:24]])
+        A_new = np.hstack([A[:, 9:18], A[:, 24:30]])
+        Ai = np.linalg.inv(A_new)
+        return symmetrise(Ai @ (A_old @ self._P_node_g @ A_old.T + np.eye(A.shape[0])) @ Ai.T)
+
+    # ------------------------------------------------------------------------------------------ Fuser API
+    def propagate(self, imu: ImuBatch) -> None:
+        """Preintegrate IMU samples (rates, body FRD) after the current time; samples at or before it are skipped."""
+        if len(imu) == 0:
+            return
+        if not (np.all(np.isfinite(imu.gyro_b)) and np.all(np.isfinite(imu.accel_b)) and np.all(np.isfinite(imu.t))):
+            raise InputError("GraphFuser.propagate: IMU batch holds non-finite values")
+        if np.any(np.diff(imu.t) <= 0):
+            k = int(np.argmax(np.diff(imu.t) <= 0))
+            raise InputError(f"GraphFuser.propagate: IMU time not increasing at sample {k + 1}: t={imu.t[k + 1]!r} s")
+        check_time(float(imu.t[-1]), self._t, "GraphFuser.propagate")
+        comp = {"t": self._comp_t, "df_b": self._df_b}
+        for k in range(len(imu)):
+            t = float(imu.t[k])
+            if t <= self._t + _TIME_TOL:
+                continue
+            dt = t - self._t
+            w = imu.gyro_b[k]
+            f = imu.accel_b[k]
+            self._integrate(self._pim, self._node, t, dt, w, f, comp)
+            self._buf_t.append(t)
+            self._buf_dt.append(dt)
+            self._buf_w.append(w)
+            self._buf_f.append(f)
+            self._t = t
+        self._comp_t, self._df_b = comp["t"], comp["df_b"]
+        self._pred_cov_cache = None
+
+    def correct(self, fix: Fix, *, height_m: float | None = None, height_sigma_m: float | None = None) -> Innovation:
+        """Add a node at ``fix.t`` with the IMU factor since the last node and, if the fix passes the NIS gate, a
+        robust position factor; returns the innovation (rejected ones say why). Optional ``height_m`` (ellipsoidal,
+        m) with ``height_sigma_m`` constrains the vertical."""
+        problem = fix_problem(fix)
+        if not problem and fix.t > self._t + 1e-6:
+            problem = f"fix time {fix.t:.6f} s is after the last IMU time {self._t:.6f} s"
+        if not problem and fix.t <= self._node.t + _TIME_TOL:
+            problem = f"fix time {fix.t:.6f} s is not after the last graph node {self._node.t:.6f} s"
+        if problem:
+            inn = rejected(fix, problem)
+        else:
+            inn = self._add_node(float(fix.t), fix, height_m, height_sigma_m)
+        self.innovations.append(inn)
+        return inn
+
+    def add_node(self, t: float) -> None:
+        """Add a node without a fix at ``t`` (s; after the last node, not after the last IMU time): a keyframe, so
+        that :meth:`node_trajectory` also covers times without fixes (as GTSAM's KITTI example does)."""
+        if not (self._node.t + _TIME_TOL < t <= self._t + 1e-6):
+            raise InputError(f"GraphFuser.add_node: t={t!r} s must lie in ({self._node.t!r}, {self._t!r}] s")
+        self._add_node(float(t), None, None, None)
+
+    def _add_node(self, t_new: float, fix: Fix | None, height_m: float | None, height_sigma_m: float | None):
+        # split the buffered samples at the node time (a straddling sample is cut in two)
+        pim_a = self._new_pim()
+        comp = {"t": -np.inf, "df_b": np.zeros(3)}
+        rest: list[tuple[float, float, np.ndarray, np.ndarray]] = []
+        t_prev = self._node.t
+        for t, dt, w, f in zip(self._buf_t, self._buf_dt, self._buf_w, self._buf_f, strict=False):
+            if t <= t_new + _TIME_TOL:
+                self._integrate(pim_a, self._node, t, dt, w, f, comp)
+            elif t_prev < t_new - _TIME_TOL:
+                self._integrate(pim_a, self._node, t_new, t_new - t_prev, w, f, comp)
+                rest.append((t, t - t_new, w, f))
+            else:
+                rest.append((t, dt, w, f))
+            t_prev = t
+        k0, k1 = self._k, self._k + 1
+        pred = pim_a.predict(self._node.state, self._node.bias)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(gtsam.CombinedImuFactor(X(k0), V(k0), X(k1), V(k1), B(k0), B(k1), pim_a))
+        vals = gtsam.Values()
+        vals.insert(X(k1), pred.pose())
+        vals.insert(V(k1), pred.velocity())
+        vals.insert(B(k1), self._node.bias)
+        inn = None
+        if fix is not None:
+            Jp = self._J_gtsam_to_layout(pred)
+            P_pred = symmetrise(Jp @ self._predict_cov_g(pim_a, pred) @ Jp.T)
+            nav_pred = self._from_gtsam(t_new, pred)
+            r = residual_ne(fix, nav_pred)
+            cov_fix = np.asarray(fix.cov_ne, float)
+            S = P_pred[0:2, 0:2] + cov_fix
+            v = nis(r, S)
+            if self.gate.accepts(v):
+                C_nL = self.frame.C_nL(nav_pred.lat, nav_pred.lon)
+                h = float(height_m) if height_m is not None else nav_pred.h
+                sv = float(height_sigma_m) if height_sigma_m is not None else self.vertical_sigma_m
+                cov_n = np.zeros((3, 3))
+                cov_n[:2, :2] = cov_fix
+                cov_n[2, 2] = sv**2
+                r_L = self.frame.to_L(fix.lat, fix.lon, h)
+                gauss = gtsam.noiseModel.Gaussian.Covariance(C_nL.T @ cov_n @ C_nL)
+                model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_k), gauss)
+                g.add(gtsam.GPSFactor(X(k1), np.asarray(r_L, float), model))
+                inn = Innovation(float(fix.t), r, S, v, True, "", fix.source)
+            else:
+                inn = rejected(fix, f"NIS {v:.1f} above gate {self.gate.threshold:.1f}", r, S, v)
+        self._update(g, vals)
+        if inn is not None and inn.accepted:
+            self._isam.update()  # one more relinearisation step
+        self._k = k1
+        self._node_times.append(t_new)
+        est = self._isam.calculateEstimate()
+        state = gtsam.NavState(est.atPose3(X(k1)), est.atVector(V(k1)))
+        self._node = _Node(t_new, state, est.atConstantBias(B(k1)))
+        self._P_node = self._node_covariance(k1)
+        # re-integrate the samples after the node time from the new node
+        self._buf_t = [x[0] for x in rest]
+        self._buf_dt = [x[1] for x in rest]
+        self._buf_w = [x[2] for x in rest]
+        self._buf_f = [x[3] for x in rest]
+        self._pim = self._new_pim()
+        comp = {"t": -np.inf, "df_b": np.zeros(3)}
+        for t, dt, w, f in rest:
+            self._integrate(self._pim, self._node, t, dt, w, f, comp)
+        self._comp_t, self._df_b = comp["t"], comp["df_b"]
+        self._pred_cov_cache = None
+        return inn
+
+    def estimate(self) -> NavEstimate:
+        """The current state (``pim.predict`` from the last node) with its LAYOUT_15 covariance."""
+        pred = self._pim.predict(self._node.state, self._node.bias)
+        nav = self._from_gtsam(self._t, pred)
+        if self._t <= self._node.t + _TIME_TOL:
+            P = self._P_node
+        else:
+            if self._pred_cov_cache is None or self._pred_cov_cache[0] != self._t:
+                self._pred_cov_cache = (self._t, self._predicted_covariance(pred))
+            P = self._pred_cov_cache[1]
+        return NavEstimate(nav, P, LAYOUT_15)
+
+    def _predicted_covariance(self, pred: gtsam.NavState) -> FloatArray:
+        J = self._J_gtsam_to_layout(pred)
+        return symmetrise(J @ self._predict_cov_g(self._pim, pred) @ J.T)
+
+    @property
+    def bias(self) -> tuple[FloatArray, FloatArray]:
+        """Current accelerometer (m/s^2) and gyro (rad/s) bias estimates, body FRD."""
+        return np.asarray(self._node.bias.accelerometer()), np.asarray(self._node.bias.gyroscope())
+
+    # ---------------------------------------------------------------------------------------- smoothing
+    def node_trajectory(self, smoothed: bool = False) -> NavTrajectory:
+        """States at the node times (the initial time and every fix time): the iSAM2 estimate, or with
+        ``smoothed=True`` a batch Levenberg-Marquardt solution of the whole graph (QR or Cholesky as configured)."""
+        values = self._isam.calculateEstimate()
+        if smoothed:
+            lm = gtsam.LevenbergMarquardtParams()
+            lm.setLinearSolverType("MULTIFRONTAL_QR" if self._factorization == "QR" else "MULTIFRONTAL_CHOLESKY")
+            values = gtsam.LevenbergMarquardtOptimizer(self._graph, values, lm).optimize()
+        navs = [
+            self._from_gtsam(t, gtsam.NavState(values.atPose3(X(k)), values.atVector(V(k))))
+            for k, t in enumerate(self._node_times)
+        ]
+        return NavTrajectory(
+            np.array([n.t for n in navs]),
+            np.array([n.lat for n in navs]),
+            np.array([n.lon for n in navs]),
+            np.array([n.h for n in navs]),
+            np.array([n.v_n for n in navs]),
+            np.array([n.q_nb for n in navs]),
+        )
+
+
+# ------------------------------------------------------------------------------------------------ peer run
+def kitti_example_peer(gps_skip: int = 10, factorization: str = "QR") -> dict[str, np.ndarray]:
+    """Run GTSAM's own ``examples/IMUKittiExampleGPS.py`` (from the installed wheel, not copied) with the iSAM2
+    factorisation switched to ``factorization`` and return its smoothed positions at the GPS epochs in its
+    z-up frame: ``{"t": (N,), "xyz": (N,3), "gps_xyz": (N,3)}``. Its printing is swallowed."""
+    path = Path(gtsam.__file__).resolve().parent / "examples" / "IMUKittiExampleGPS.py"
+    if not path.is_file():
+        raise InputError(f"{path}: GTSAM's KITTI example is not in the installed gtsam package")
+    spec = importlib.util.spec_from_file_location("_gtsam_kitti_example", path)
+    mod = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(mod)
+
+    class _Params(gtsam.ISAM2Params):
+        def setFactorization(self, _name: str) -> None:  # noqa: N802 (GTSAM's name)
+            super().setFactorization(factorization)
+
+    class _Gtsam:  # the example's view of the gtsam module, with the factorisation forced
+        def __getattr__(self, name: str):
+            return _Params if name == "ISAM2Params" else getattr(gtsam, name)
+
+    mod.gtsam = _Gtsam()
+    with contextlib.redirect_stdout(io.StringIO()):
+        calib, imu, gps = mod.loadKittiData()
+        noise_gps = gtsam.noiseModel.Diagonal.Precisions(np.asarray([0, 0, 0] + [1.0 / 0.07] * 3))
+        sx = gtsam.noiseModel.Diagonal.Precisions(np.asarray([0, 0, 0, 1, 1, 1]))
+        sv = gtsam.noiseModel.Diagonal.Sigmas(np.ones(3) * 1000.0)
+        sb = gtsam.noiseModel.Diagonal.Sigmas(np.asarray([0.1] * 3 + [5.00e-05] * 3))
+        isam = mod.optimize(gps, imu, sx, sv, sb, noise_gps, calib, 1, gps_skip)
+        res = isam.calculateEstimate()
+    idx = range(1, len(gps))
+    return {
+        "t": np.array([gps[i].time for i in idx]),
+        "xyz": np.array([res.atPose3(X(i)).translation() for i in idx]),
+        "gps_xyz": np.array([gps[i].position for i in idx]),
+    }

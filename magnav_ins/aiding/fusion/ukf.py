@@ -1,0 +1,160 @@
+"""Loosely coupled error-state UKF on filterpy (``UnscentedKalmanFilter`` + ``MerweScaledSigmaPoints``).
+The ONLY module of the package that imports filterpy.
+
+Architecture (Wang et al. 2022, sec. 3.3 and Fig. 1, seed 001; Groves 2013 sec. 14.1-14.2): the strapdown INS
+(:class:`ins.strapdown.StrapdownStepper`) runs on bias-corrected IMU samples; the filter state is the 15-state error
+``x = [dp_n, dv_n, psi, db_a, db_g]`` (LAYOUT_15, every error "estimate minus truth", defined in
+:mod:`ins.error_model`). Prediction: ``x <- Phi x`` with ``(Phi, Qd)`` from :func:`ins.error_model.system_matrices`
+and :func:`ins.error_model.discretize` recomputed for each propagation interval (at most ``cov_step_s``, and exactly
+the interval up to a fix), pushed through the unscented transform. Measurement: a fix's north/east position,
+``z = r_fix - r_ins`` (m, NED at the INS position) and ``h(x) = -x[pos N, E]``, noise ``R = fix.cov_ne`` (any SPD
+2x2); with an optional height source ``z`` gains ``-(h_src - h_ins)`` and ``h(x)`` gains ``x[pos D]``.
+
+Gating: NIS ``y^T S^-1 y`` against the ``gate_probability`` chi-square quantile (2 dof, 3 with height); a rejected
+fix leaves the filter untouched and its :class:`Innovation` says why. Covariance: symmetrised, eigenvalues floored at
+0 after each step, tiny jitter before the sigma-point Cholesky. Closed loop: after an accepted update the estimated
+errors are fed back (``C_nb <- exp(-[psi x]) C_nb``, position/velocity minus their errors, biases ``b <- b - db``)
+and the error state is reset to zero (the covariance is kept; the reset Jacobian is I to first order, Groves
+sec. 14.2.7).
+
+Latency: a fix stamped in the past (up to ``buffer_s``) is applied at its own time: the INS, biases and covariance
+are restored from the last checkpoint before the fix (one per covariance step), re-propagated through the buffered
+IMU samples to the fix time, corrected, and re-propagated to now with the corrected biases
+(:class:`common.InertialCore`). Older fixes are rejected with a reason.
+
+Sigma points: ``alpha = 1, beta = 2, kappa = 0`` by default (lambda = 0, no negative central weight; with linear
+``f``/``h`` the UKF then reproduces the Kalman filter exactly).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+from ...core.types import Fix, Innovation, NavEstimate
+from ...ins.error_model import apply_error
+from ..gating import ChiSquareGate, nis
+from .common import ImuNoise, InertialCore, fix_problem, rejected, residual_ne, symmetrise
+
+_N = 15
+
+
+def _fx(x: np.ndarray, dt: float, Phi: np.ndarray) -> np.ndarray:  # noqa: ARG001 (filterpy's signature)
+    return Phi @ x
+
+
+def _hx_ne(x: np.ndarray) -> np.ndarray:
+    return -x[0:2]
+
+
+def _hx_ned(x: np.ndarray) -> np.ndarray:
+    return np.array([-x[0], -x[1], x[2]])  # z = [dN, dE, h_src - h_ins]; h_ins - h_true = -dp_D
+
+
+class UkfFuser(InertialCore):
+    """Error-state UKF fuser (see the module docstring). ``init``: initial INS state and its 15x15 covariance;
+    ``noise``: IMU noise; ``gate_probability``: chi-square gate; ``cov_step_s``: longest covariance step (s);
+    ``buffer_s``: how far back a late fix may be applied (s); ``altitude_hold``: clamp the INS height (m)."""
+
+    name = "ukf"
+
+    def __init__(
+        self,
+        init: NavEstimate,
+        noise: ImuNoise,
+        *,
+        gate_probability: float = 0.9999,
+        cov_step_s: float = 1.0,
+        buffer_s: float = 120.0,
+        altitude_hold: float | None = None,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+    ) -> None:
+        self._points = MerweScaledSigmaPoints(_N, alpha=alpha, beta=beta, kappa=kappa)
+        self._ukf = UnscentedKalmanFilter(dim_x=_N, dim_z=2, dt=1.0, hx=_hx_ne, fx=_fx, points=self._points)
+        self.gate_probability = float(gate_probability)
+        self.gate = ChiSquareGate(self.gate_probability, 2)
+        self.innovations: list[Innovation] = []
+        super().__init__(init, noise, cov_step_s=cov_step_s, buffer_s=buffer_s, altitude_hold=altitude_hold)
+
+    def _jitter(self, P: np.ndarray) -> np.ndarray:
+        return symmetrise(P, 1e-15 * max(1.0, float(np.trace(P)) / _N))
+
+    def _predict_cov(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
+        """Unscented prediction of the (zero) error state through ``x <- Phi x`` with noise ``Qd``."""
+        u = self._ukf
+        u.x = np.zeros(_N)
+        u.P = self._jitter(self._P)
+        u.Q = Qd
+        u.predict(fx=_fx, Phi=Phi)
+        self._P = symmetrise(u.P, 0.0)
+
+    def correct(self, fix: Fix, *, height_m: float | None = None, height_sigma_m: float | None = None) -> Innovation:
+        """Apply a position fix (north/east; with ``height_m``, ellipsoidal m, and ``height_sigma_m`` also the
+        vertical) at ``fix.t``; returns the innovation (rejected ones say why)."""
+        inn = self._correct(fix, height_m, height_sigma_m)
+        self.innovations.append(inn)
+        return inn
+
+    def _correct(self, fix: Fix, height_m: float | None, height_sigma_m: float | None) -> Innovation:
+        problem = fix_problem(fix)
+        if problem:
+            return rejected(fix, problem)
+        if height_m is not None and not (
+            np.isfinite(height_m) and height_sigma_m is not None and np.isfinite(height_sigma_m) and height_sigma_m > 0
+        ):
+            return rejected(fix, f"bad height aid: height_m={height_m}, height_sigma_m={height_sigma_m}")
+        if fix.t > self.t + 1e-6:
+            return rejected(fix, f"fix time {fix.t:.6f} s is after the last IMU time {self.t:.6f} s")
+        rest: list = []
+        if fix.t < self.t - 1e-6:
+            r = self._rewind(float(fix.t))
+            if r is None:
+                return rejected(fix, f"fix time {fix.t:.6f} s is older than the replay buffer ({self.buffer_s} s)")
+            rest = r
+        self._advance_cov()
+        nav = self._stepper.nav
+        res = residual_ne(fix, nav)
+        R = np.asarray(fix.cov_ne, float)
+        u = self._ukf
+        # sigma points of the current covariance (identity prediction, no noise)
+        u.x = np.zeros(_N)
+        u.P = self._jitter(self._P)
+        u.Q = np.zeros((_N, _N))
+        u.predict(fx=_fx, Phi=np.eye(_N))
+        if height_m is not None:
+            z = np.r_[res, float(height_m) - nav.h]
+            Rz = np.zeros((3, 3))
+            Rz[:2, :2] = R
+            Rz[2, 2] = float(height_sigma_m) ** 2
+            hx, dim = _hx_ned, 3
+        else:
+            z, Rz, hx, dim = res, R, _hx_ne, 2
+        # innovation covariance by the unscented transform, for the gate (before touching the filter)
+        Zs = np.array([hx(s) for s in u.sigmas_f])
+        zp = u.Wm @ Zs
+        dZ = Zs - zp
+        S = (u.Wc[:, None] * dZ).T @ dZ + Rz
+        y = z - zp
+        v = nis(y, S)
+        gate = self.gate if dim == 2 else ChiSquareGate(self.gate_probability, dim)
+        S_ne = S[:2, :2]
+        if not gate.accepts(v):
+            self._replay(rest)
+            return rejected(fix, f"NIS {v:.1f} above gate {gate.threshold:.1f}", y[:2], S_ne, v)
+        u._dim_z = dim
+        u.update(z, R=Rz, hx=hx)
+        dx = np.asarray(u.x, float)
+        self._P = symmetrise(u.P, 0.0)
+        # closed-loop feedback, then reset the error state
+        corrected = apply_error(nav, -dx[:9])
+        self._stepper.reset(corrected)
+        self._b_a = self._b_a - dx[9:12]
+        self._b_g = self._b_g - dx[12:15]
+        u.x = np.zeros(_N)
+        # the corrected state becomes the checkpoint at the fix time
+        self._checkpoints.pop()
+        self._checkpoint()
+        self._replay(rest)
+        return Innovation(float(fix.t), y[:2], S_ne, v, True, "", fix.source, {"nis_dof": float(dim)})
