@@ -161,8 +161,8 @@ def waypoints(
 
     Guidance: heading rate command ``r_cmd = turn_rate * tanh(psi_err / 10 deg)`` toward the next waypoint (a
     smoothly saturated coordinated turn at up to ``turn_rate`` rad/s), followed through a first-order lag of
-    ``roll_time_constant_s`` (so bank changes smoothly); the next waypoint is taken when within one turn radius
-    ``v / turn_rate`` (fly-by); the flight ends one turn radius before the last point. Vertical: ``vd_cmd = -climb_rate * tanh(dh / 50 m)`` toward the waypoint height,
+    ``roll_time_constant_s`` (so bank changes smoothly); the next waypoint is taken within the fly-by lead distance
+    ``r tan(delta_psi / 2)`` of a turn of ``delta_psi`` with radius ``r = v / turn_rate``; the flight ends abeam the last point (closest approach). Vertical: ``vd_cmd = -climb_rate * tanh(dh / 50 m)`` toward the waypoint height,
     with the same lag. Attitude: yaw = heading, roll = bank of a coordinated turn ``atan(v r / g)``, pitch =
     flight-path angle ``atan(-vd / v)``. Position and velocity come from one ODE solution, so they are
     consistent to ~1e-12.
@@ -176,7 +176,14 @@ def waypoints(
     _check_positive(roll_time_constant_s=roll_time_constant_s)
     V = float(speed_mps)
     tau = float(roll_time_constant_s)
-    r_switch = V / turn_rate
+    r_turn = V / turn_rate
+    # fly-by lead distance at each inner waypoint: r tan(delta_psi / 2) for a turn of delta_psi
+    r_switch = np.full(len(pts), V / rate_hz)
+    for i in range(1, len(pts) - 1):
+        b_in = _bearing(pts[i - 1, 0], pts[i - 1, 1], pts[i, 0], pts[i, 1])
+        b_out = _bearing(pts[i, 0], pts[i, 1], pts[i + 1, 0], pts[i + 1, 1])
+        turn = abs(float(wrap_angle(b_out - b_in)))
+        r_switch[i] = max(r_turn * math.tan(min(turn, 0.9 * math.pi) / 2.0), V / rate_hz)
 
     def make_rhs(i: int):  # noqa: ANN202
         lat_w, lon_w, h_w = pts[i]
@@ -199,7 +206,10 @@ def waypoints(
             )
 
         def arrive(_t: float, y: FloatArray) -> float:
-            return _dist(y[0], y[1], lat_w, lon_w) - r_switch
+            if i < len(pts) - 1:
+                return _dist(y[0], y[1], lat_w, lon_w) - r_switch[i]
+            # last point: stop at the closest approach (the point comes abeam)
+            return math.cos(_bearing(y[0], y[1], lat_w, lon_w) - y[3])
 
         arrive.terminal = True  # type: ignore[attr-defined]
         arrive.direction = -1  # type: ignore[attr-defined]
@@ -210,6 +220,8 @@ def waypoints(
     t0 = 0.0
     segments = []
     for i in range(1, len(pts)):
+        if i < len(pts) - 1 and _dist(y[0], y[1], pts[i, 0], pts[i, 1]) <= r_switch[i]:
+            continue  # already within the switching radius of this fly-by point: go on to the next
         rhs, arrive = make_rhs(i)
         leg = _dist(*y[:2], *pts[i, :2])
         t_max = t0 + 3.0 * leg / V + 2.0 * math.pi / turn_rate + 60.0
@@ -237,6 +249,26 @@ def waypoints(
     return NavTrajectory(t, lat, wrap_angle(lon), h, v_n, q)
 
 
+def _rdp(x: FloatArray, y: FloatArray, tol: float) -> list[int]:
+    """Ramer-Douglas-Peucker simplification of a polyline (metres): indices of the kept vertices."""
+    keep = np.zeros(len(x), dtype=bool)
+    keep[0] = keep[-1] = True
+    stack = [(0, len(x) - 1)]
+    while stack:
+        i0, i1 = stack.pop()
+        if i1 <= i0 + 1:
+            continue
+        dx, dy = x[i1] - x[i0], y[i1] - y[i0]
+        L = math.hypot(dx, dy)
+        px, py = x[i0 + 1 : i1] - x[i0], y[i0 + 1 : i1] - y[i0]
+        d = np.abs(dx * py - dy * px) / L if L > 0 else np.hypot(px, py)
+        k = int(np.argmax(d))
+        if d[k] > tol:
+            keep[i0 + 1 + k] = True
+            stack += [(i0, i0 + 1 + k), (i0 + 1 + k, i1)]
+    return [int(i) for i in np.flatnonzero(keep)]
+
+
 def survey_line(
     lat: FloatArray,
     lon: FloatArray,
@@ -245,31 +277,27 @@ def survey_line(
     rate_hz: float,
     turn_rate: float = 3.0 * DEG_TO_RAD,
     climb_rate: float = 2.5,
+    tolerance_m: float = 5.0,
 ) -> NavTrajectory:
     """Fly the polyline ``(lat, lon, h)`` (arrays, rad, rad, m; e.g. a survey flight line) at ``speed_mps``.
 
-    Vertices closer than 2 turn radii to the previous kept vertex are dropped (a survey line's fixes are often
-    metres apart), then the line is flown as :func:`waypoints`, so heading changes are smoothed into
-    coordinated turns of at most ``turn_rate``.
+    The line is simplified with Ramer-Douglas-Peucker (vertices within ``tolerance_m`` of the simplified line are
+    dropped; a survey line's fixes are often metres apart), then flown as :func:`waypoints`, so heading changes
+    are smoothed into coordinated turns of at most ``turn_rate`` (corners are cut by up to about a turn radius
+    ``v / turn_rate`` times (1/cos(half the heading change) - 1)).
     """
     lat = np.asarray(lat, dtype=float)
     lon = np.asarray(lon, dtype=float)
     hh = np.broadcast_to(np.asarray(h, dtype=float), lat.shape)
     if lat.ndim != 1 or lat.shape != lon.shape or len(lat) < 2:
         raise ConfigError(f"survey_line: lat {lat.shape} and lon {lon.shape} must be equal-length 1-D arrays (>=2)")
-    _check_positive(speed_mps=speed_mps, turn_rate=turn_rate)
-    min_sep = 2.0 * speed_mps / turn_rate
-    keep = [0]
-    for k in range(1, len(lat)):
-        if _dist(lat[keep[-1]], lon[keep[-1]], lat[k], lon[k]) >= min_sep:
-            keep.append(k)
-    if keep[-1] != len(lat) - 1:
-        if len(keep) > 1 and _dist(lat[keep[-1]], lon[keep[-1]], lat[-1], lon[-1]) < min_sep:
-            keep[-1] = len(lat) - 1
-        else:
-            keep.append(len(lat) - 1)
-    if len(keep) < 2:
-        raise ConfigError(f"survey_line: the line is shorter than two turn radii ({min_sep:.0f} m)")
+    if not (np.all(np.isfinite(lat)) and np.all(np.isfinite(lon)) and np.all(np.isfinite(hh))):
+        raise ConfigError("survey_line: lat, lon and h must be finite")
+    _check_positive(speed_mps=speed_mps, turn_rate=turn_rate, tolerance_m=tolerance_m)
+    r_n, r_e = radii_of_curvature(lat[0])
+    north = (lat - lat[0]) * r_n
+    east = wrap_angle(lon - lon[0]) * r_e * math.cos(lat[0])
+    keep = _rdp(north, east, tolerance_m)
     pts = np.stack([lat[keep], lon[keep], hh[keep]], axis=-1)
     return waypoints(pts, speed_mps, rate_hz, turn_rate=turn_rate, climb_rate=climb_rate)
 
