@@ -3,38 +3,22 @@ one-line message naming the file, row and column, and no output file."""
 
 from __future__ import annotations
 
-import argparse
-import importlib.util
 import json
 
 import numpy as np
 import pandas as pd
 import pytest
 
+from magnav_ins.cli import main
 from magnav_ins.commands import ins_integrate
-from magnav_ins.core.errors import MagnavError
 from magnav_ins.core.frames import horizontal_error_m
 
 COLS = ["t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]
 
 
 def _cli(argv: list[str]) -> int:
-    """Run ``magnav-ins ins integrate ARGV`` through the real dispatcher when the ``ins`` group is complete;
-    otherwise through a parser holding only this sub-command, with the dispatcher's error mapping."""
-    if importlib.util.find_spec("magnav_ins.commands.ins_drift") is not None:
-        from magnav_ins.cli import main
-
-        return main(["ins", "integrate", *argv])
-    parser = argparse.ArgumentParser(prog="magnav-ins ins")
-    ins_integrate.add_parser(parser.add_subparsers())
-    args = parser.parse_args(["integrate", *argv])
-    try:
-        return int(args.handler(args) or 0)
-    except MagnavError as exc:
-        import sys
-
-        print(f"magnav-ins: error: {exc}", file=sys.stderr)
-        return 2
+    """``magnav-ins ins integrate ARGV`` through the real dispatcher (MagnavError -> one line, exit status 2)."""
+    return main(["ins", "integrate", *argv])
 
 
 @pytest.fixture(scope="module")
