@@ -28,6 +28,7 @@ are refused with the row number.
 from __future__ import annotations
 
 import json
+import os
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -47,6 +48,7 @@ FloatArray = NDArray[np.float64]
 
 BUILTIN_PREFIX = "builtin:"
 _COMPONENTS = ("north", "east", "down")
+_FILE_MODE = 0o644  # maps are data to share (mkstemp would leave 0600)
 _SUFFIX_UNITS = {"nt": "nT", "mgal": "mGal"}
 _QUANTITIES = ("total_field_anomaly", "gravity_disturbance", "vector_field")
 
@@ -107,6 +109,7 @@ def write_map(fmap: GridMap, path: str | Path, *, dtype: str = "float64", compre
             enc[name] = {"zlib": True, "complevel": 6, "_FillValue": np.nan}
     with atomic_path(path) as tmp:
         ds.to_netcdf(tmp, engine="netcdf4", encoding=enc, format="NETCDF4")
+        os.chmod(tmp, _FILE_MODE)
 
 
 def _json_default(o: Any) -> Any:
