@@ -1,24 +1,27 @@
 """Strapdown inertial navigation: the NED mechanisation on WGS-84, one compiled algorithm in two forms.
 
-The algorithm (Savage, "Strapdown inertial navigation integration algorithm design", Parts 1-2, JGCD 21(1-2),
-1998; Groves 2013, *Principles of GNSS, Inertial, and Multisensor Integrated Navigation Systems*, 2nd ed.,
-sec. 5.4-5.5 and 5.5.4-5.5.5 for the precision forms) advances the state ``(lat, lon, h, v_n, q_nb)`` over one
-IMU interval ``(t[k-1], t[k]]`` from the angle increment ``dtheta_b`` (rad) and the velocity increment ``dv_b``
-(m/s) of that interval, body FRD, together with the increments of the interval before:
+The algorithm (Savage, "Strapdown inertial navigation integration algorithm design", Part 1: attitude, Part 2:
+velocity and position, JGCD 21(1-2), 1998 -- the form pyins also follows; Groves 2013, *Principles of GNSS,
+Inertial, and Multisensor Integrated Navigation Systems*, 2nd ed., sec. 5.4 (NED equations) and 5.5 (precision
+forms)) advances the state ``(lat, lon, h, v_n, q_nb)`` over one IMU interval ``(t[k-1], t[k]]`` from the angle
+increment ``dtheta_b`` (rad) and the velocity increment ``dv_b`` (m/s) of that interval, body FRD, together with
+the increments of the interval before:
 
-1. Attitude (Savage Part 1 eq. 29 two-sample coning; Groves eq. 5.97): body rotation vector
+1. Attitude (Savage Part 1, two-sample coning for a linearly varying rate): body rotation vector
    ``phi = dtheta_k + (dtheta_{k-1} x dtheta_k) / 12``; navigation-frame rotation ``zeta = omega_in_n dt`` with
-   ``omega_in_n = omega_ie_n + omega_en_n`` (Earth rate and transport rate, Groves eq. 5.41, 5.44) evaluated
-   at mid-interval; ``q_nb(k) = q(-zeta) * q_nb(k-1) * q(phi)`` (exact rotation-vector quaternions).
-2. Specific-force velocity increment (Savage Part 2 eq. 22-24, 36; Groves eq. 5.98-5.99):
+   ``omega_in_n = omega_ie_n + omega_en_n`` (Earth rate and transport rate, Groves eq. 5.44) at mid-interval;
+   ``q_nb(k) = q(-zeta) * q_nb(k-1) * q(phi)`` with exact rotation-vector quaternions (Groves sec. 5.5.1).
+2. Specific-force velocity increment (Savage Part 2; Groves sec. 5.5.2):
    ``dv_rot = dv_k + (dtheta_k x dv_k) / 2`` (rotation compensation) ``+ (dtheta_{k-1} x dv_k + dv_{k-1} x
    dtheta_k) / 12`` (two-sample sculling), then ``dv_sf_n = (I - [zeta x] / 2) C_nb(k-1) dv_rot``.
-3. Velocity (Groves eq. 5.54): ``v_n(k) = v_n(k-1) + dv_sf_n + (g_n - (2 omega_ie_n + omega_en_n) x v_n) dt``
-   with gravity (:func:`gravity_ned`, the formula of :func:`magnav_ins.ins.earth.gravity_n`) and the Coriolis
-   term at mid-interval position and velocity (one extrapolation step, second-order accurate).
-4. Position on the ellipsoid (Groves eq. 5.56, trapezoidal): ``h -= dt (v_D(k-1) + v_D(k)) / 2``;
+3. Velocity: ``v_n(k) = v_n(k-1) + dv_sf_n + (g_n - (2 omega_ie_n + omega_en_n) x v_n) dt`` (Coriolis and
+   transport terms of Groves eq. 5.54) with normal gravity :func:`gravity_ned` (the formula of
+   :func:`magnav_ins.ins.earth.gravity_n`), both at mid-interval position and velocity (extrapolated from the start
+   of the interval: second-order accurate, self-starting).
+4. Position on the ellipsoid, trapezoidal (Groves sec. 5.4.4): ``h -= dt (v_D(k-1) + v_D(k)) / 2``;
    ``lat += dt (v_N(k-1) + v_N(k)) / 2 / (R_N + h)``; ``lon += dt (v_E(k-1) + v_E(k)) / 2 / ((R_E + h) cos lat)``,
-   radii of curvature (Groves eq. 2.105-2.106) at the mid-interval latitude and height.
+   radii of curvature (Groves eq. 2.105-2.106) at the mid-interval latitude and height. Longitude is not wrapped.
+   Like every latitude/longitude mechanisation it is singular at the poles (``1 / cos lat``, ``tan lat``).
 
 Rate-type IMUs (:class:`~magnav_ins.core.types.ImuBatch`, sample k = *mean* rate over ``(t[k-1], t[k]]``) are
 turned into increments ``dtheta = gyro dt``, ``dv = accel dt``; increment-type IMUs
@@ -144,7 +147,7 @@ def _step(
     ve = x[_V + 1]
     vd = x[_V + 2]
 
-    # --- two-sample coning and sculling (Savage Part 1 eq. 29, Part 2 eq. 36) ----------------------------------
+    # --- two-sample coning and sculling (Savage 1998 Part 1 and Part 2) ------------------------------------------
     px, py, pz = tx, ty, tz
     rx = vx + 0.5 * (ty * vz - tz * vy)
     ry = vy + 0.5 * (tz * vx - tx * vz)
@@ -183,7 +186,7 @@ def _step(
     wie_n = _W * c
     wie_d = -_W * s
 
-    # --- specific-force increment in NED (Savage Part 2 eq. 22-24) -------------------------------------------
+    # --- specific-force increment in NED (Savage 1998 Part 2) -----------------------------------------------
     q0, q1, q2, q3 = x[_Q], x[_Q + 1], x[_Q + 2], x[_Q + 3]  # x, y, z, w
     c00 = 1.0 - 2.0 * (q1 * q1 + q2 * q2)
     c01 = 2.0 * (q0 * q1 - q2 * q3)
@@ -220,7 +223,7 @@ def _step(
     ve1 = ve + dve + (-(wd * vmn - wn * vmd)) * dt
     vd1 = vd + dvd + (g_d - (wn * vme - we * vmn)) * dt
 
-    # --- position, trapezoidal (Groves eq. 5.56) --------------------------------------------------------------
+    # --- position, trapezoidal (Groves sec. 5.4.4) -----------------------------------------------------------
     van = 0.5 * (vn + vn1)
     vae = 0.5 * (ve + ve1)
     vad = 0.5 * (vd + vd1)
@@ -228,7 +231,7 @@ def _step(
     lat1 = lat + van * dt / rn_h
     lon1 = x[_LON] + vae * dt / (re_h * c)
 
-    # --- attitude: q_nb(k) = q(-zeta) q_nb(k-1) q(phi) (Savage Part 1 eq. 11-12, 18) ------------------------
+    # --- attitude: q_nb(k) = q(-zeta) q_nb(k-1) q(phi) (Savage 1998 Part 1) ----------------------------------
     zn = -(wie_n + vae / re_h) * dt
     ze = (van / rn_h) * dt
     zd = -(wie_d - vae * s / (c * re_h)) * dt
