@@ -1,0 +1,260 @@
+"""``magnav-ins map ...``: inspect a map, grid a survey, sample a map at points.
+
+    magnav-ins map info MAP [--json]
+    magnav-ins map grid SURVEY --spacing M [--exclude-lines ID,ID,...] [--exclude-tie-lines] [--out MAP.nc]
+    magnav-ins map sample MAP --points CSV --out CSV [--method bilinear|bicubic]
+
+``MAP`` is a NetCDF grid, ``builtin:NAME`` or a survey CSV(.xz) (then ``--spacing`` grids it on load). Files that
+lack kind/unit/datum/altitude metadata are refused; ``--kind``, ``--altitude-m``, ``--datum`` supply them explicitly.
+Outputs are written atomically; user mistakes give a one-line error and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.atomic import atomic_path
+from ..core.errors import InputError
+from ..core.types import FieldKind
+from ..core.units import DEG_TO_RAD, RAD_TO_DEG
+from . import map_variability
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("map", help="maps: inspect, grid a survey, sample at points, feature variability")
+    map_sub = p.add_subparsers(dest="map_command", metavar="MAP_COMMAND")
+    map_sub.required = True
+    _add_info(map_sub)
+    _add_grid(map_sub)
+    _add_sample(map_sub)
+    # --- sub-commands defined in other modules register here (one line each) ---
+    map_variability.add_parser(map_sub)
+
+
+def _map_options(p: argparse.ArgumentParser, *, survey: bool) -> None:
+    kinds = [k.value for k in FieldKind]
+    p.add_argument("--kind", choices=kinds, default=None, help="what the map measures, if the file does not say")
+    p.add_argument("--altitude-m", type=float, default=None, help="ellipsoidal height (m) if the file does not say")
+    p.add_argument("--datum", default=None, help="geodetic datum if the file does not say (only WGS84 is supported)")
+    if survey:
+        p.add_argument(
+            "--geoid-m",
+            type=float,
+            default=None,
+            help="geoid undulation N (m) turning a survey's height_orthometric_m into ellipsoidal height H + N",
+        )
+    p.add_argument("--spacing", type=float, default=None, metavar="M", help="grid spacing (m) for a survey CSV")
+
+
+def _load(args: argparse.Namespace, spec: str) -> Any:
+    from ..maps.io import load_map
+
+    return load_map(
+        spec,
+        grid_spacing_m=args.spacing,
+        kind=args.kind,
+        altitude_m=args.altitude_m,
+        datum=args.datum,
+        geoid_undulation_m=getattr(args, "geoid_m", None),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ info
+def _add_info(map_sub: argparse._SubParsersAction) -> None:
+    p = map_sub.add_parser("info", help="describe a map: kind, unit, frame, extent, spacing, altitude, value range")
+    p.add_argument("map", metavar="MAP", help="NetCDF grid, builtin:NAME or survey CSV(.xz) with --spacing")
+    _map_options(p, survey=True)
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+    p.set_defaults(handler=run_info)
+
+
+def map_summary(fmap: Any) -> dict[str, Any]:
+    """A JSON-able description of a :class:`GridMap` (degrees and metres)."""
+    lat0, lat1, lon0, lon1 = fmap.bounds_latlon
+    v = np.asarray(fmap.values, dtype=float)
+    alt = np.asarray(fmap.altitude_m, dtype=float)
+    dn, de = fmap.spacing_m
+    out: dict[str, Any] = {
+        "name": fmap.name,
+        "kind": fmap.kind.value,
+        "unit": fmap.unit,
+        "frame": fmap.frame,
+        "datum": fmap.datum,
+        "crs": fmap.crs,
+        "shape": list(fmap.shape),
+        "spacing_m": [dn, de],
+        "lat_deg": [lat0 * RAD_TO_DEG, lat1 * RAD_TO_DEG],
+        "lon_deg": [lon0 * RAD_TO_DEG, lon1 * RAD_TO_DEG],
+        "altitude_m": float(alt) if alt.ndim == 0 else [float(np.nanmin(alt)), float(np.nanmax(alt))],
+        "draped": bool(alt.ndim != 0),
+        "value_range": [float(np.nanmin(v)), float(np.nanmax(v))],
+        "value_rms": float(np.sqrt(np.nanmean(v**2))),
+        "coverage": float(np.mean(np.isfinite(v))),
+    }
+    if fmap.frame == "local":
+        out["origin_deg_m"] = [fmap.origin[0] * RAD_TO_DEG, fmap.origin[1] * RAD_TO_DEG, fmap.origin[2]]
+        w, e, s, n = fmap.region
+        out["northing_m"] = [s, n]
+        out["easting_m"] = [w, e]
+    if fmap.metadata:
+        out["metadata"] = fmap.metadata
+    return out
+
+
+def run_info(args: argparse.Namespace) -> int:
+    fmap = _load(args, args.map)
+    s = map_summary(fmap)
+    if args.json:
+        print(json.dumps(s, default=str))
+        return 0
+    alt = s["altitude_m"]
+    rows = [
+        ("name", s["name"]),
+        ("kind", f"{s['kind']} [{s['unit']}]"),
+        (
+            "frame",
+            s["frame"]
+            + (f" (origin {s['origin_deg_m'][0]:.6f}, {s['origin_deg_m'][1]:.6f} deg)" if "origin_deg_m" in s else ""),
+        ),
+        ("datum / crs", f"{s['datum']} / {s['crs'] or '-'}"),
+        ("shape (ny, nx)", f"{s['shape'][0]} x {s['shape'][1]}"),
+        ("spacing", f"{s['spacing_m'][0]:.1f} m north, {s['spacing_m'][1]:.1f} m east"),
+        ("latitude", f"{s['lat_deg'][0]:.5f} .. {s['lat_deg'][1]:.5f} deg"),
+        ("longitude", f"{s['lon_deg'][0]:.5f} .. {s['lon_deg'][1]:.5f} deg"),
+        ("altitude", f"{alt:.1f} m" if not s["draped"] else f"draped {alt[0]:.1f} .. {alt[1]:.1f} m (ellipsoidal)"),
+        ("values", f"{s['value_range'][0]:.3f} .. {s['value_range'][1]:.3f} {s['unit']} (rms {s['value_rms']:.3f})"),
+        ("coverage", f"{100 * s['coverage']:.1f} % of nodes"),
+    ]
+    w = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"{k:<{w}}  {v}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ grid
+def _add_grid(map_sub: argparse._SubParsersAction) -> None:
+    p = map_sub.add_parser("grid", help="grid a survey CSV(.xz) into a NetCDF map (bidirectional line gridding)")
+    p.add_argument(
+        "survey", metavar="SURVEY", help="survey CSV(.xz): latitude, longitude, height, value[, flight_line]"
+    )
+    p.add_argument("--spacing", type=float, required=True, metavar="M", help="grid spacing in metres")
+    p.add_argument("--exclude-lines", default="", metavar="ID,ID,...", help="line ids to leave out")
+    p.add_argument(
+        "--exclude-tie-lines",
+        action="store_true",
+        help="leave out the cross (tie) lines, found by line azimuth (more than 20 deg off the dominant direction)",
+    )
+    p.add_argument("--method", choices=["auto", "bidirectional", "linear", "cubic"], default="auto")
+    p.add_argument("--kind", choices=[k.value for k in FieldKind], default=None, help="kind of a 'value' column")
+    p.add_argument("--geoid-m", type=float, default=None, help="geoid undulation N (m) for height_orthometric_m")
+    p.add_argument("--altitude-m", type=float, default=None, help="constant ellipsoidal height if no height column")
+    p.add_argument("--float32", action="store_true", help="store values as float32 (half the size)")
+    p.add_argument("--out", default=None, metavar="MAP.nc", help="output NetCDF (default: SURVEY name + .nc here)")
+    p.add_argument("--quiet", action="store_true", help="print nothing")
+    p.set_defaults(handler=run_grid)
+
+
+def _parse_ids(text: str) -> list[int]:
+    out = []
+    for tok in filter(None, (t.strip() for t in text.split(","))):
+        try:
+            out.append(int(tok))
+        except ValueError:
+            raise InputError(f"--exclude-lines: {tok!r} is not an integer line id (expected ID,ID,...)") from None
+    return out
+
+
+def run_grid(args: argparse.Namespace) -> int:
+    import time
+
+    from ..maps.build import cross_lines, grid_survey
+    from ..maps.io import read_survey, write_map
+
+    exclude = _parse_ids(args.exclude_lines)
+    src = Path(args.survey)
+    out = Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc")
+    t0 = time.perf_counter()
+    survey = read_survey(src, kind=args.kind, geoid_undulation_m=args.geoid_m, altitude_m=args.altitude_m)
+    ties: list[int] = []
+    if args.exclude_tie_lines:
+        ties = cross_lines(survey)
+        exclude = sorted(set(exclude) | set(ties))
+    fmap = grid_survey(survey, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem)
+    fmap.metadata["source"] = src.name
+    write_map(fmap, out, dtype="float32" if args.float32 else "float64")
+    if not args.quiet:
+        dn, de = fmap.spacing_m
+        print(
+            f"gridded {len(survey)} readings ({fmap.metadata['gridder']}) -> {out}: {fmap.shape[0]} x {fmap.shape[1]} "
+            f"nodes at {dn:.0f} m, {100 * np.mean(np.isfinite(fmap.values)):.0f} % covered, "
+            f"{time.perf_counter() - t0:.1f} s"
+        )
+        if ties:
+            print(f"tie lines excluded: {','.join(map(str, ties))}")
+        ign = fmap.metadata.get("ignored_lines") or []
+        if ign:
+            print(f"cross lines not used by the line gridder: {','.join(map(str, ign))}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ sample
+def _add_sample(map_sub: argparse._SubParsersAction) -> None:
+    p = map_sub.add_parser("sample", help="map values at points (CSV lat_deg,lon_deg[,h_m]); NaN off the map")
+    p.add_argument("map", metavar="MAP", help="NetCDF grid, builtin:NAME or survey CSV(.xz) with --spacing")
+    p.add_argument("--points", required=True, metavar="CSV", help="CSV with columns lat_deg, lon_deg[, h_m]")
+    p.add_argument("--out", required=True, metavar="CSV", help="output CSV: the input columns + value")
+    p.add_argument("--method", choices=["bilinear", "bicubic"], default="bilinear")
+    _map_options(p, survey=True)
+    p.set_defaults(handler=run_sample)
+
+
+def read_points(path: str | Path) -> Any:
+    """Read a points CSV (``lat_deg``, ``lon_deg``[, ``h_m``]) as a DataFrame, validating every row."""
+    import pandas as pd
+
+    from ..maps.io import _check_latlon, _numeric
+
+    src = str(path)
+    if not Path(path).is_file():
+        raise InputError(f"{src}: no such points file")
+    try:
+        df = pd.read_csv(path, on_bad_lines="error", skipinitialspace=True)
+    except pd.errors.EmptyDataError:
+        raise InputError(f"{src}: the file is empty") from None
+    except pd.errors.ParserError as exc:
+        raise InputError(f"{src}: malformed CSV ({exc})") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    for c in ("lat_deg", "lon_deg"):
+        if c not in df.columns:
+            raise InputError(
+                f"{src}: missing column '{c}' (expected lat_deg, lon_deg[, h_m]); found {list(df.columns)}"
+            )
+    if len(df) == 0:
+        raise InputError(f"{src}: no data rows")
+    for c in ("lat_deg", "lon_deg") + (("h_m",) if "h_m" in df.columns else ()):
+        df[c] = _numeric(df, c, src, allow_nan=False)
+    _check_latlon(df["lat_deg"].to_numpy(), df["lon_deg"].to_numpy(), src, "lat_deg", "lon_deg")
+    return df
+
+
+def run_sample(args: argparse.Namespace) -> int:
+    fmap = _load(args, args.map)
+    df = read_points(args.points)
+    lat = df["lat_deg"].to_numpy(dtype=float) * DEG_TO_RAD
+    lon = df["lon_deg"].to_numpy(dtype=float) * DEG_TO_RAD
+    h = df["h_m"].to_numpy(dtype=float) if "h_m" in df.columns else None
+    v = fmap.value(lat, lon, h, method=args.method)
+    out = df.copy()
+    if v.ndim == 2:
+        for k, comp in enumerate(("north", "east", "down")):
+            out[f"value_{comp}"] = v[:, k]
+    else:
+        out["value"] = v
+    with atomic_path(args.out) as tmp:
+        out.to_csv(tmp, index=False, float_format="%.10g")
+    return 0
