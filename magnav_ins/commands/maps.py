@@ -215,20 +215,12 @@ def _add_sample(map_sub: argparse._SubParsersAction) -> None:
 
 def read_points(path: str | Path) -> Any:
     """Read a points CSV (``lat_deg``, ``lon_deg``[, ``h_m``]) as a DataFrame, validating every row."""
-    import pandas as pd
-
-    from ..maps.io import _check_latlon, _numeric
+    from ..maps.io import _check_latlon, _numeric, read_csv_checked
 
     src = str(path)
     if not Path(path).is_file():
         raise InputError(f"{src}: no such points file")
-    try:
-        df = pd.read_csv(path, on_bad_lines="error", skipinitialspace=True)
-    except pd.errors.EmptyDataError:
-        raise InputError(f"{src}: the file is empty") from None
-    except pd.errors.ParserError as exc:
-        raise InputError(f"{src}: malformed CSV ({exc})") from None
-    df.columns = [str(c).strip() for c in df.columns]
+    df = read_csv_checked(path)
     for c in ("lat_deg", "lon_deg"):
         if c not in df.columns:
             raise InputError(

@@ -28,6 +28,7 @@ are refused with the row number.
 from __future__ import annotations
 
 import json
+import lzma
 import os
 import re
 from collections.abc import Callable, Sequence
@@ -313,6 +314,28 @@ class Survey:
         return np.unique(self.line)
 
 
+def read_csv_checked(path: str | Path) -> Any:
+    """Read a CSV (``.xz``/``.gz`` by suffix) with pandas; a row with too many fields, an empty file or an unreadable
+    file raises :class:`InputError` naming the file (and the line, where pandas says it). Column names are stripped."""
+    import warnings
+
+    import pandas as pd
+
+    src = str(path)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", pd.errors.ParserWarning)
+            df = pd.read_csv(path, on_bad_lines="error", skipinitialspace=True, index_col=False)
+    except pd.errors.EmptyDataError:
+        raise InputError(f"{src}: the file is empty") from None
+    except (pd.errors.ParserError, pd.errors.ParserWarning) as exc:
+        raise InputError(f"{src}: malformed CSV ({str(exc).strip()})") from None
+    except (OSError, UnicodeDecodeError, EOFError, lzma.LZMAError) as exc:
+        raise InputError(f"{src}: cannot be read ({type(exc).__name__}: {exc})") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    return df
+
+
 def _first(cols: Sequence[str], *names: str) -> str | None:
     for n in names:
         if n in cols:
@@ -376,8 +399,6 @@ def read_survey(
     ellipsoidal height ``h = H + N``; ``altitude_m`` gives a constant ellipsoidal height when the file has no height
     column. ``builtin:NAME`` reads a survey shipped with the package (:mod:`magnav_ins.maps.builtin`).
     """
-    import pandas as pd
-
     if isinstance(path, str) and path.startswith(BUILTIN_PREFIX):
         from .builtin import builtin_survey_path
 
@@ -386,16 +407,11 @@ def read_survey(
     src = str(path)
     if not path.is_file():
         raise InputError(f"{src}: no such survey file")
-    the_kind = FieldKind(kind) if kind is not None else None
     try:
-        df = pd.read_csv(path, on_bad_lines="error", skipinitialspace=True)
-    except pd.errors.EmptyDataError:
-        raise InputError(f"{src}: the file is empty") from None
-    except pd.errors.ParserError as exc:
-        raise InputError(f"{src}: malformed CSV ({exc})") from None
-    except (OSError, UnicodeDecodeError, EOFError) as exc:
-        raise InputError(f"{src}: cannot be read ({type(exc).__name__}: {exc})") from None
-    df.columns = [str(c).strip() for c in df.columns]
+        the_kind = FieldKind(kind) if kind is not None else None
+    except ValueError:
+        raise InputError(f"{src}: unknown kind {kind!r}; expected one of {[k.value for k in FieldKind]}") from None
+    df = read_csv_checked(path)
     cols = list(df.columns)
     if len(df) == 0:
         raise InputError(f"{src}: no data rows")
