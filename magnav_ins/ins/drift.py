@@ -60,7 +60,9 @@ class DriftConfig:
 class DriftResult:
     """``t`` (M,) s; Monte Carlo RMS horizontal error ``sigma_h_mc`` (M,) m, north/east RMS ``sigma_n_mc``,
     ``sigma_e_mc``; model 1-sigmas ``sigma_h_model``, ``sigma_n_model``, ``sigma_e_model`` (M,) m; per-run
-    horizontal errors ``err_h`` (R, M) m."""
+    horizontal errors ``err_h`` (R, M) m; the model's largest tilt 1-sigma ``sigma_tilt_model`` (M,) rad and the
+    Monte Carlo RMS of the largest tilt error ``sigma_tilt_mc`` (M,) rad (the linear model holds while these are
+    small, say < 0.05 rad)."""
 
     grade: ImuGrade
     config: DriftConfig
@@ -72,6 +74,13 @@ class DriftResult:
     sigma_n_model: FloatArray
     sigma_e_model: FloatArray
     err_h: FloatArray
+    sigma_tilt_mc: FloatArray
+    sigma_tilt_model: FloatArray
+
+    @property
+    def linear_regime(self) -> bool:
+        """True while the tilt errors stayed small (< 0.05 rad RMS) so that the error model is meaningful."""
+        return bool(max(self.sigma_tilt_mc.max(), self.sigma_tilt_model.max()) < 0.05)
 
 
 def run_drift(grade: ImuGrade, cfg: DriftConfig) -> DriftResult:
@@ -133,4 +142,6 @@ def run_drift(grade: ImuGrade, cfg: DriftConfig) -> DriftResult:
         np.sqrt(P[:k, 0, 0]),
         np.sqrt(P[:k, 1, 1]),
         err_h[:, :k],
+        np.sqrt(np.mean(e[..., 6:9] ** 2, axis=0)).max(axis=-1)[:k],
+        np.sqrt(np.diagonal(P[:k, 6:9, 6:9], axis1=-2, axis2=-1)).max(axis=-1),
     )
