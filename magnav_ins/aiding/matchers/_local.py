@@ -192,3 +192,19 @@ def sigma_window(cov_ne: FloatArray, n_sigma: float, floor: float) -> tuple[floa
     return max(n_sigma * float(np.sqrt(max(c[0, 0], 0.0))), floor), max(
         n_sigma * float(np.sqrt(max(c[1, 1], 0.0))), floor
     )
+
+
+def native_gradient_rms(native: tuple[FloatArray, FloatArray, FloatArray] | None) -> float:
+    """RMS horizontal gradient magnitude (unit/m, summed over components) of native grid nodes
+    ``(north axis, east axis, values (ni, nj, c))`` by forward differences; NaN when unavailable."""
+    if native is None:
+        return float("nan")
+    n_ax, e_ax, v = native
+    if n_ax.size < 2 or e_ax.size < 2:
+        return float("nan")
+    gn = np.diff(v, axis=0) / (n_ax[1] - n_ax[0])
+    ge = np.diff(v, axis=1) / (e_ax[1] - e_ax[0])
+    a, b = np.sum(gn**2, axis=-1), np.sum(ge**2, axis=-1)
+    if not (np.any(np.isfinite(a)) and np.any(np.isfinite(b))):
+        return float("nan")
+    return float(np.sqrt(np.nanmean(a) + np.nanmean(b)))

@@ -13,6 +13,9 @@ At each update:
    likelihood (eq. 3.6) to keep R uncorrelated with the filter's prior (``spread_of="likelihood"``, default);
    ``"posterior"`` uses the posterior slices, and ``covariance="posterior"`` reports the full posterior second
    moment about the peak instead of the slice spread. The grid quantisation ``step^2 / 12`` is added.
+Map resolution: where the RMS map gradient times the node spacing exceeds ``quantisation`` reading sigmas, the
+window is resampled (bilinear) at a finer step (at most ``max_refine`` times finer), and the remaining node error
+``|grad|^2 step^2 / 12`` is added to the likelihood variance.
 
 Guards (Storms sec. 4.5 suggestions): several separated posterior peaks inside the prior region (a second local
 maximum at least ``min_peak_separation_m`` away holding at least ``peak_ratio`` of the peak density, inside the
@@ -32,7 +35,15 @@ from scipy import ndimage
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap
 from ...core.types import FieldReadings, Fix, NavEstimate
-from ._local import feature_variability, make_frame, map_components, sigma_window, spacing_of, window_axes
+from ._local import (
+    feature_variability,
+    make_frame,
+    map_components,
+    native_gradient_rms,
+    sigma_window,
+    spacing_of,
+    window_axes,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -74,13 +85,15 @@ class BayesGridMatcher:
     map_sigma: float = 0.0
     tail: float = 0.16
     spread_of: str = "likelihood"
-    covariance: str = "spread"
+    covariance: str = "posterior"
     prior_region_sigma: float = 2.0
     peak_ratio: float = 0.5
     min_peak_separation_m: float | None = None
     max_residual_sigma: float = 4.0
     min_variability: float = 0.5
     max_nodes: int = 1_000_000
+    quantisation: float = 1.0
+    max_refine: float = 8.0
     name: str = "bayes_grid"
 
     def __post_init__(self) -> None:
@@ -142,6 +155,13 @@ class BayesGridMatcher:
         step0 = self.resolution_m or spacing_of(fmap, 0.5)
         half_n, half_e = sigma_window(cov, self.window_sigma, max(self.window_floor_m, 2 * step0))
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
+        s2 = float(readings.sigma) ** 2 + self.map_sigma**2
+        g_rms = native_gradient_rms(native)
+        if native is not None and self.quantisation > 0 and np.isfinite(g_rms) and g_rms > 0:
+            sp = min(float(native[0][1] - native[0][0]), float(native[1][1] - native[1][0]))
+            fine = max(self.quantisation * np.sqrt(s2) / g_rms, sp / self.max_refine)
+            if fine < 0.99 * sp:  # interpolate the map (Storms sec. 3.2) so the node error stays near the noise
+                native, step0 = None, fine
         if native is not None and native[0].size >= 3 and native[1].size >= 3:
             n_ax, e_ax, v = native
             step = 0.5 * (float(n_ax[1] - n_ax[0]) + float(e_ax[1] - e_ax[0]))
@@ -151,7 +171,8 @@ class BayesGridMatcher:
             n_ax, e_ax, step = window_axes(half_n, half_e, step0, self.max_nodes)
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m = frame.sample(gn, ge, state.h).reshape(gn.shape + (ncomp,))
-        s2 = float(readings.sigma) ** 2 + self.map_sigma**2
+        if np.isfinite(g_rms):  # value error of the nearest node: |grad|^2 step^2 / 12
+            s2 = s2 + g_rms**2 * step**2 / 12.0
         loglik = -0.5 * np.sum((m - z) ** 2, axis=-1) / s2
         finite = np.isfinite(loglik)
         if not np.any(finite):

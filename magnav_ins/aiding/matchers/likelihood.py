@@ -45,6 +45,7 @@ from ._local import (
     make_frame,
     map_components,
     moments_about,
+    native_gradient_rms,
     sigma_window,
     spacing_of,
     window_axes,
@@ -79,7 +80,9 @@ class LikelihoodMatcher:
     Parameters (SI; field values in the map's unit): ``method`` "ml" | "mlr" | "abl"; ``ratio_threshold`` and
     ``min_distance_m`` (MLR); ``bin_size_m`` and ``peak_threshold`` (ABL); ``demean``, ``difference`` (section
     composition); ``search_window`` and ``window_sigma`` (search window = ``window_sigma`` prior sigmas, at least
-    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma;
+    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma; ``quantisation``: with the default resolution the scan step is refined (by
+    bilinear interpolation) until the RMS map gradient times the step is at most this many reading sigmas, and the
+    remaining node error ``|grad|^2 step^2 / 12`` is added to the likelihood variance (0 = native grid only);
     ``min_variability`` flat-map cut-off in units of s; ``max_fix_sigma_m`` largest accepted fix 1-sigma (default
     a quarter of the window half-width); ``max_nodes`` cap on scanned nodes."""
 
@@ -98,6 +101,7 @@ class LikelihoodMatcher:
     min_variability: float = 1.0
     max_fix_sigma_m: float | None = None
     max_nodes: int = 2_000_000
+    quantisation: float = 1.0
     both_directions: bool = True
     track_sigma_m: float = 1.0
     name: str = ""
@@ -148,7 +152,14 @@ class LikelihoodMatcher:
         nz = len(z)
         if _is_track(fmap):
             return self._track_surface(fmap, frame, z, dn, de, half_n, half_e, float(rd.sigma))
+        s2 = float(rd.sigma) ** 2 + self.map_sigma**2
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
+        g_rms = _gradient_rms(native, fmap, window)
+        if native is not None and self.quantisation > 0 and np.isfinite(g_rms) and g_rms > 0:
+            fine = self.quantisation * np.sqrt(s2) / g_rms  # scan step keeping the node error below the noise
+            sp = [float(a[1] - a[0]) for a in native[:2] if a.size > 1]
+            if sp and fine < 0.99 * min(sp):
+                native, step0 = None, fine
         if native is not None:
             n_ax, e_ax, v_last = native
             stride = int(np.ceil(np.sqrt(n_ax.size * e_ax.size * nz / self.max_nodes)))
@@ -168,7 +179,8 @@ class LikelihoodMatcher:
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m = frame.sample(dn[:, None, None] + gn[None], de[:, None, None] + ge[None], h_last)
             m = m.reshape(nz, gn.size, ncomp)
-        s2 = float(rd.sigma) ** 2 + self.map_sigma**2
+        if np.isfinite(g_rms):  # value error of the nearest node: |grad|^2 step^2 / 12
+            s2 = s2 + g_rms**2 * step**2 / 12.0
         center = m[-1, int(np.argmin(gn.ravel() ** 2 + ge.ravel() ** 2))]
         if np.all(np.isfinite(center)):
             variability = feature_variability(m[-1], center)
@@ -320,6 +332,22 @@ def _bin_mass(p: FloatArray, surf: Surface, bin_size_m: float) -> FloatArray:
     tree = cKDTree(pts)
     groups = tree.query_ball_point(pts, r=bin_size_m / 2.0)
     return np.array([p[g].sum() for g in groups])
+
+
+def _gradient_rms(
+    native: tuple[FloatArray, FloatArray, FloatArray] | None, fmap: FieldMap, window: MatchWindow
+) -> float:
+    """RMS horizontal gradient magnitude (unit/m) of the window's native nodes, or of the map at the INS
+    positions when the map has no native local grid."""
+    if native is not None:
+        return native_gradient_rms(native)
+    try:
+        g = np.asarray(fmap.gradient_ne(window.lat, window.lon), float)
+    except (ValueError, AttributeError):
+        return float("nan")
+    g2 = np.sum(g.reshape(len(g), -1) ** 2, axis=1)
+    g2 = g2[np.isfinite(g2)]
+    return float(np.sqrt(g2.mean())) if g2.size else float("nan")
 
 
 def _is_track(fmap: FieldMap) -> bool:

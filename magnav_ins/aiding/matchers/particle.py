@@ -18,11 +18,13 @@ Road penalisation (003 sec. 5.2): with a ``road`` map (anything with ``nearest(l
 Measurement update: ``measurement="field"`` weights by the Gaussian likelihood of the reading (scalar or 3-axis,
 ``z = [Bx, By, Bz]``) at each particle; ``"fix"`` runs ``fix_matcher`` (ML by default) on the reading with the
 particle cloud as prior and weights by ``N(z = [pN, pE]; p, R)``. SIR: systematic resampling when the effective
-sample size ``1 / sum w^2`` drops below ``resample_threshold * n_particles`` (1.0 = every update, as in the thesis),
-with roughening (``roughening``: a Gaussian kernel of Silverman's bandwidth times the weighted spread, plus
-``roughen_min_m``) against sample impoverishment when the likelihood is much sharper than the cloud.
+sample size ``1 / sum w^2`` drops below ``resample_threshold * n_particles`` (default 0.5; 1.0 = every update, as
+in the thesis), with roughening (``roughening``: a Gaussian kernel of Silverman's bandwidth ``h`` and Liu-West
+shrinkage ``a = sqrt(1 - h^2)`` towards the mean, which keeps the cloud's mean and covariance; the covariance gets a
+floor ``roughen_min_m^2``) against sample impoverishment when the likelihood is much sharper than the cloud.
 Output: weighted mean and covariance -> :class:`Fix` ("no fix" when the last update was off the map, on a flat
-map (the map values across the cloud vary less than ``min_variability`` reading sigmas) or had a NaN reading).
+map (the feature variability, Wang eq. 14, of a 9 x 9 stencil of half-width ``max(2 sigma_cloud, flat_window_m)``
+about the cloud mean below ``min_variability`` reading sigmas) or had a NaN reading).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from numpy.typing import NDArray
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
-from ._local import LocalFrame, map_components, sample_map
+from ._local import LocalFrame, feature_variability, map_components, sample_map
 
 FloatArray = NDArray[np.float64]
 
@@ -101,8 +103,9 @@ class ParticleFilter:
     measurement: str = "field"
     fix_matcher: Any = None
     map_sigma: float = 0.0
-    resample_threshold: float = 1.0
+    resample_threshold: float = 0.5
     min_variability: float = 0.5
+    flat_window_m: float = 10.0
     roughening: bool = True
     roughen_min_m: float = 0.1
     name: str = "particle"
@@ -220,12 +223,17 @@ class ParticleFilter:
             return None, "off the map: no particle on the map"
         s2 = float(readings.sigma) ** 2 + self.map_sigma**2
         w = np.exp(state.logw)
-        wm = w[ok] / w[ok].sum()
-        mu = wm @ m[ok]
-        spread = float(np.sum(wm @ (m[ok] - mu) ** 2))
-        if spread < self.min_variability**2 * s2:
+        mean = w @ state.pos
+        sd = float(np.sqrt(np.sum(w @ (state.pos - mean) ** 2)))
+        r = max(2.0 * sd, self.flat_window_m)
+        g = np.linspace(-r, r, 9)
+        gn, ge = np.meshgrid(mean[0] + g, mean[1] + g, indexing="ij")
+        stencil = sample_map(fmap, state.frame, gn.ravel(), ge.ravel(), None).reshape(gn.size, ncomp)
+        centre = stencil[gn.size // 2]
+        spread = feature_variability(stencil, centre) if np.all(np.isfinite(centre)) else np.inf
+        if spread < self.min_variability**2 * s2:  # Wang eq. 14 about the cloud mean
             return None, (
-                f"flat map: map values across the particles vary by {np.sqrt(spread):.3g}, below "
+                f"flat map: feature variability {np.sqrt(spread):.3g} about the particle mean below "
                 f"{self.min_variability:g} x reading sigma {np.sqrt(s2):.3g}"
             )
         loglik = np.full(len(m), -np.inf)
@@ -259,13 +267,14 @@ class ParticleFilter:
         if force_check and neff < self.resample_threshold * m + 1e-9:
             idx = _systematic_resample(w, float(rng.uniform()))
             pos = state.pos[idx]
-            if self.roughening:  # regularised resampling: Gaussian kernel, Silverman bandwidth, floor
+            if self.roughening:  # regularised resampling with Liu-West shrinkage: keeps the mean and covariance
                 mean = w @ state.pos
                 d = state.pos - mean
-                cov = (d * w[:, None]).T @ d
-                h = (4.0 / (m * 4.0)) ** (1.0 / 6.0)
-                sd = h * np.sqrt(np.maximum(np.diag(cov), 0.0)) + self.roughen_min_m
-                pos = pos + rng.standard_normal((m, 2)) * sd
+                cov = (d * w[:, None]).T @ d + np.eye(2) * self.roughen_min_m**2
+                h2 = (4.0 / (m * 4.0)) ** (2.0 / 6.0)  # Silverman bandwidth^2 for d = 2
+                a = np.sqrt(1.0 - h2)
+                jitter = rng.multivariate_normal(np.zeros(2), h2 * cov, size=m)
+                pos = mean + a * (pos - mean) + jitter
             return replace(
                 state,
                 pos=pos,

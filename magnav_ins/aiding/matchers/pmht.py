@@ -442,7 +442,7 @@ class PMHTMatcher:
                 f"reading sigma {np.sqrt(s2):.3g}"
             )
         hmax2 = np.max(half, axis=1) ** 2
-        r2 = (self.candidate_floor_m or step) ** 2 + np.minimum(s2 / np.maximum(grad2, 1e-300), hmax2[:, None])
+        r2 = (self.candidate_floor_m or 0.5 * step) ** 2 + np.minimum(s2 / np.maximum(grad2, 1e-300), hmax2[:, None])
         logv = -0.5 * np.where(np.isfinite(dist), dist, 0.0) / s2
         pd = self.detection_prob
         logb = np.log((1.0 - pd) / pd) - np.log(4.0 * half[:, 0] * half[:, 1]) if pd < 1.0 else np.full(T, -np.inf)
