@@ -175,37 +175,26 @@ def test_feature_variability_along_a_track_map():
     assert c[299] == pytest.approx(a**2 * np.sum(np.arange(1, h + 1) ** 2) / h, rel=1e-6)
 
 
-def test_variability_command_end_to_end(tmp_path, monkeypatch, capsys):
-    """The sub-command's handler on a parser of its own, with map loading stubbed to return a known ramp map."""
-    import argparse
-    import sys
-    import types
-
+def test_variability_command_end_to_end(tmp_path, capsys):
+    """``magnav-ins map variability`` through the real dispatcher on a ramp map written by maps.io."""
     import xarray as xr
 
-    import magnav_ins.maps
-    from magnav_ins.commands import map_variability as cmd
-    from magnav_ins.core.errors import MapError
+    from magnav_ins.cli import main
+    from magnav_ins.maps.io import write_map
 
-    ramp = _local(0.3 * NN)
-
-    def load_map(path, **_):
-        if path != "ramp.nc":
-            raise MapError(f"{path}: no such map")
-        return ramp
-
-    fake = types.SimpleNamespace(load_map=load_map)
-    monkeypatch.setitem(sys.modules, "magnav_ins.maps.io", fake)
-    monkeypatch.setattr(magnav_ins.maps, "io", fake, raising=False)
-    parser = argparse.ArgumentParser()
-    cmd.add_parser(parser.add_subparsers())
-    out = tmp_path / "v.nc"
-    args = parser.parse_args(["variability", "ramp.nc", "--window", "100", "--out", str(out), "--sigma", "2"])
-    assert args.handler(args) == 0
+    src = tmp_path / "ramp.nc"
+    write_map(_local(0.3 * NN), src)
+    out = tmp_path / "out" / "v.nc"
+    assert main(["map", "variability", str(src), "--window", "100", "--out", str(out), "--sigma", "2"]) == 0
     assert "feature_variability" in capsys.readouterr().out
     with xr.open_dataset(out) as ds:
         np.testing.assert_allclose(ds["crlb_along_gradient"].values, 2.0 / 0.3, rtol=1e-9)
+        np.testing.assert_allclose(ds["feature_variability"].values[10:-10, 10:-10], _ramp_ci(0.3, D, 5), rtol=1e-9)
     assert out.with_suffix(".png").exists()
-    args = parser.parse_args(["variability", "ramp.nc", "--window", "-1", "--out", str(out)])
-    with pytest.raises(InputError, match="--window"):
-        args.handler(args)
+    # user mistakes: one line on stderr, exit status 2, nothing written
+    bad = tmp_path / "bad.nc"
+    assert main(["map", "variability", str(src), "--window", "-1", "--out", str(bad)]) == 2
+    assert main(["map", "variability", str(tmp_path / "none.nc"), "--window", "10", "--out", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("magnav-ins: error:") for line in err)
+    assert not bad.exists()

@@ -26,7 +26,10 @@ def add_parser(map_sub: argparse._SubParsersAction) -> None:
         help="feature variability (Wang eq. 14), gradient RMS and Cramer-Rao bounds of a map -> NetCDF + PNG",
         description=__doc__,
     )
-    p.add_argument("map", metavar="MAP", help="map: NetCDF grid, survey CSV(.xz) or builtin:NAME")
+    from .maps import _map_options  # lazy: commands/maps.py imports this module
+
+    p.add_argument("map", metavar="MAP", help="NetCDF grid, builtin:NAME or survey CSV(.xz) with --spacing")
+    _map_options(p, survey=True)
     p.add_argument("--window", type=float, required=True, metavar="M", help="square window width in metres")
     p.add_argument("--out", required=True, metavar="FILE", help="output NetCDF (a PNG is written beside it)")
     p.add_argument(
@@ -104,7 +107,7 @@ def write_netcdf(path: Path, fmap: Any, rasters: dict[str, tuple[np.ndarray, str
         attrs["origin_h_m"] = fmap.origin[2]
     ds = xr.Dataset(data_vars=data_vars, coords=coords, attrs=attrs)
     with atomic_path(path) as tmp:
-        ds.to_netcdf(tmp, format="NETCDF4")
+        ds.to_netcdf(tmp, format="NETCDF4", encoding={k: {"zlib": True, "complevel": 4} for k in rasters})
 
 
 def write_png(path: Path, fmap: Any, rasters: dict[str, tuple[np.ndarray, str, str]], window_m: float) -> None:
@@ -120,8 +123,12 @@ def write_png(path: Path, fmap: Any, rasters: dict[str, tuple[np.ndarray, str, s
         labels = ("easting (m)", "northing (m)")
     extent = (x[0], x[-1], y[0], y[-1])
     n = len(rasters)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.0), squeeze=False)
-    for ax, (name, (vals, unit, _)) in zip(axes[0], rasters.items(), strict=True):
+    ncols = min(3, n)
+    nrows = -(-n // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.4 * ncols, 3.9 * nrows), squeeze=False)
+    for ax in axes.ravel()[n:]:
+        ax.set_visible(False)
+    for ax, (name, (vals, unit, _)) in zip(axes.ravel(), rasters.items(), strict=False):
         shown = np.where(np.isfinite(vals), vals, np.nan)
         finite = shown[np.isfinite(shown)]
         vmax = float(np.percentile(finite, 98)) if finite.size else 1.0
@@ -138,11 +145,11 @@ def write_png(path: Path, fmap: Any, rasters: dict[str, tuple[np.ndarray, str, s
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..maps import io as maps_io
+    from .maps import _load  # the map group's loader: same options and errors as 'map info'
 
     if not np.isfinite(args.window) or args.window <= 0:
         raise InputError(f"--window: expected a positive width in metres, got {args.window!r}")
-    fmap = maps_io.load_map(args.map)
+    fmap = _load(args, args.map)
     if not hasattr(fmap, "axes"):
         raise InputError(f"{args.map}: variability rasters need a gridded map, got {type(fmap).__name__}")
     rasters = compute(fmap, args.window, args.sigma)
