@@ -1,7 +1,7 @@
 """Information content of maps and the accuracy/speed of the map tools (maps.variability, maps.continuation).
 
 1. Wang et al. (2022) route, Melbourne [-38, 144.5] -> Sydney [-35, 150] at 22 m/s, on the real EIGEN-6C4 gravity
-   disturbance at 10 km (shared/data/fatiando, minus WGS-84 normal gravity via maps.reference): feature
+   disturbance at 10 km (``builtin:eigen6c4-australia-se``, a straight lat/lon line): feature
    variability C_i along the route (Wang eq. 14; Wang Fig. 4 shows it small during the first hour) and the
    Cramér-Rao bounds for a 1 mGal gravimeter every 10 s (one reading; a T = 30 batch).
 2. Storms' hallway (synthetic, maps.synthetic.hallway_map): single-reading CRLB of a 3-axis reading with
@@ -18,42 +18,22 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from magnav_ins.core.types import FieldKind
+from magnav_ins.core.frames import horizontal_error_m
 from magnav_ins.core.units import DEG_TO_RAD, NT_PER_MILLIGAUSS
 from magnav_ins.maps import synthetic as syn
 from magnav_ins.maps import variability as var
 from magnav_ins.maps.continuation import upward_continue_array
-from magnav_ins.maps.grid import GridMap
-from magnav_ins.maps.reference import gravity_disturbance_mgal
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
-def wang_route() -> dict[str, float] | None:
-    path = DATA / "fatiando" / "earth-gravity-10arcmin.nc"
-    if not path.exists():
-        return None
-    import xarray as xr
+def wang_route() -> dict[str, float]:
+    from magnav_ins.maps.io import load_map
 
-    with xr.open_dataset(path) as ds:
-        sub = ds.sel(latitude=slice(-41.0, -32.0), longitude=slice(141.0, 153.0))
-        lat = sub.latitude.values * DEG_TO_RAD
-        lon = sub.longitude.values * DEG_TO_RAD
-        height = float(sub.height.values.max()) if "height" in sub else 10_000.0
-        g = sub.gravity.values
-    la2 = np.repeat(lat[:, None], lon.size, axis=1)
-    dg = gravity_disturbance_mgal(g, la2, height)
-    gm = GridMap(
-        lat, lon, dg, kind=FieldKind.GRAVITY_DISTURBANCE_MGAL, frame="geodetic", altitude_m=height, name="EIGEN-6C4"
-    )
+    gm = load_map("builtin:eigen6c4-australia-se")  # EIGEN-6C4 disturbance at 10 km (shipped, from shared/data)
     # route: 22 m/s, a reading every 10 s
     start, end = np.array([-38.0, 144.5]) * DEG_TO_RAD, np.array([-35.0, 150.0]) * DEG_TO_RAD
-    from magnav_ins.core.frames import horizontal_error_m
-
     length = float(horizontal_error_m(end[0], end[1], start[0], start[1]))
     n = int(length / (22.0 * 10.0)) + 1
     f = np.linspace(0.0, 1.0, n)
@@ -70,6 +50,19 @@ def wang_route() -> dict[str, float] | None:
         "crlb_one_reading_median_m": float(np.nanmedian(along)),
         "crlb_T30_semi_minor_median_m": float(np.nanmedian(batch.semi_minor_m[30:])),
         "crlb_T30_semi_major_median_m": float(np.nanmedian(batch.semi_major_m[30:])),
+    }
+
+
+def osborne() -> dict[str, float]:
+    from magnav_ins.maps.io import load_map
+
+    m = load_map("builtin:osborne-magnetic")
+    r = var.crlb_raster(m, 1.0, window_m=1000.0)
+    return {
+        "grid_spacing_m": float(m.spacing_m[0]),
+        "crlb_one_reading_median_m": float(np.nanmedian(r["along_gradient"])),
+        "crlb_1km_window_semi_major_median_m": float(np.nanmedian(r["semi_major"])),
+        "ci_1km_median_nt2": float(np.nanmedian(var.feature_variability(m, 1000.0).values)),
     }
 
 
@@ -125,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     out = {
         "wang_route_eigen6c4": wang_route(),
+        "osborne_magnetic_sigma_1nt": osborne(),
         "storms_hallway": hallway(),
         "upward_continuation_dipole": continuation(),
         "feature_variability_raster": variability_speed(),
