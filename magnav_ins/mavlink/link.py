@@ -52,8 +52,13 @@ MSG_ID = {
     "SCALED_PRESSURE": mavlink2.MAVLINK_MSG_ID_SCALED_PRESSURE,
 }
 
+SET_MESSAGE_INTERVAL = mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL  # 511
+
 SEVERITY = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 4, "notice": 5, "info": 6, "debug": 7}
-GLOBAL_POSITION_SOURCE = {"magnetic": mavlink2.GLOBAL_POSITION_SRC_MAGNETIC, "terrain": mavlink2.GLOBAL_POSITION_SRC_TERRAIN}
+GLOBAL_POSITION_SOURCE = {
+    "magnetic": mavlink2.GLOBAL_POSITION_SRC_MAGNETIC,
+    "terrain": mavlink2.GLOBAL_POSITION_SRC_TERRAIN,
+}
 GLOBAL_POSITION_UNHEALTHY = 1
 GLOBAL_POSITION_PRIMARY = 2
 
@@ -266,8 +271,8 @@ class MavLink:
         except Exception as exc:  # pymavlink raises bare OSError/SerialException/ValueError
             raise LinkError(f"cannot open MAVLink connection {self.url!r}: {exc}") from exc
         if self._signing_key is not None:
-            unsigned_ok: Callable[[object, int], bool] | None = (lambda _mav, _id: True) if self._accept_unsigned else (
-                lambda _mav, _id: False
+            unsigned_ok: Callable[[object, int], bool] | None = (
+                (lambda _mav, _id: True) if self._accept_unsigned else (lambda _mav, _id: False)
             )
             conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=unsigned_ok)
         return conn
@@ -430,14 +435,26 @@ class MavLink:
             if kind == "GPS_INPUT":
                 healthy = msg.fix_type >= 3
                 return OutputMessage(
-                    "gps_input", time.monotonic(), math.radians(msg.lat / DEG_E7), math.radians(msg.lon / DEG_E7),
-                    msg.alt, msg.horiz_accuracy, healthy, msg.to_dict(),
+                    "gps_input",
+                    time.monotonic(),
+                    math.radians(msg.lat / DEG_E7),
+                    math.radians(msg.lon / DEG_E7),
+                    msg.alt,
+                    msg.horiz_accuracy,
+                    healthy,
+                    msg.to_dict(),
                 )
             if kind == "GLOBAL_POSITION_SENSOR":
                 healthy = not (msg.flags & GLOBAL_POSITION_UNHEALTHY)
                 return OutputMessage(
-                    "global_position_sensor", time.monotonic(), math.radians(msg.lat / DEG_E7),
-                    math.radians(msg.lon / DEG_E7), msg.alt_ellipsoid, msg.eph, healthy, msg.to_dict(),
+                    "global_position_sensor",
+                    time.monotonic(),
+                    math.radians(msg.lat / DEG_E7),
+                    math.radians(msg.lon / DEG_E7),
+                    msg.alt_ellipsoid,
+                    msg.eph,
+                    healthy,
+                    msg.to_dict(),
                 )
             if kind == "ODOMETRY":
                 c = msg.pose_covariance
@@ -477,8 +494,17 @@ class MavLink:
         interval_us = 1e6 / rate_hz
         self._send(
             lambda: self.mav.command_long_send(
-                target_system, target_component, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
-                MSG_ID[name], interval_us, 0, 0, 0, 0, 0,
+                target_system,
+                target_component,
+                mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
+                0,
+                MSG_ID[name],
+                interval_us,
+                0,
+                0,
+                0,
+                0,
+                0,
             )
         )
 
@@ -493,14 +519,27 @@ class MavLink:
     def send_set_gps_global_origin(self, target_system: int, lat: float, lon: float, h_msl: float) -> None:
         self._send(
             lambda: self.mav.set_gps_global_origin_send(
-                target_system, int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)),
-                int(round(h_msl * 1000.0)), 0,
+                target_system,
+                int(round(math.degrees(lat) * DEG_E7)),
+                int(round(math.degrees(lon) * DEG_E7)),
+                int(round(h_msl * 1000.0)),
+                0,
             )
         )
 
     def send_gps_input(
-        self, *, t_unix: float, lat: float, lon: float, h_msl: float, v_n: np.ndarray, sigma_h: float, sigma_v: float,
-        sigma_speed: float, healthy: bool, satellites: int = 10,
+        self,
+        *,
+        t_unix: float,
+        lat: float,
+        lon: float,
+        h_msl: float,
+        v_n: np.ndarray,
+        sigma_h: float,
+        sigma_v: float,
+        sigma_speed: float,
+        healthy: bool,
+        satellites: int = 10,
     ) -> None:
         """GPS_INPUT for ArduPilot ``GPS1_TYPE=14``. Unhealthy -> fix_type 1 (no fix), position zeroed: the stream keeps
         flowing (a pause makes ArduPilot report "Bad fix") but no untrusted position is sent."""
@@ -511,15 +550,39 @@ class MavLink:
         hdop = max(0.5, sigma_h / 3.0) if healthy else 99.0
         self._send(
             lambda: self.mav.gps_input_send(
-                int(t_unix * 1e6), 0, 0, week_ms, week, fix_type, lat_e7, lon_e7, float(h_msl if healthy else 0.0),
-                hdop, hdop, float(v_n[0]), float(v_n[1]), float(v_n[2]), float(sigma_speed), float(sigma_h),
-                float(sigma_v), satellites if healthy else 0, 0,
+                int(t_unix * 1e6),
+                0,
+                0,
+                week_ms,
+                week,
+                fix_type,
+                lat_e7,
+                lon_e7,
+                float(h_msl if healthy else 0.0),
+                hdop,
+                hdop,
+                float(v_n[0]),
+                float(v_n[1]),
+                float(v_n[2]),
+                float(sigma_speed),
+                float(sigma_h),
+                float(sigma_v),
+                satellites if healthy else 0,
+                0,
             )
         )
 
     def send_odometry(
-        self, *, t_usec: int, r_ned: np.ndarray, q_nb: np.ndarray, v_b: np.ndarray, sigma_pos: np.ndarray,
-        sigma_vel: np.ndarray, reset_counter: int, quality: int,
+        self,
+        *,
+        t_usec: int,
+        r_ned: np.ndarray,
+        q_nb: np.ndarray,
+        v_b: np.ndarray,
+        sigma_pos: np.ndarray,
+        sigma_vel: np.ndarray,
+        reset_counter: int,
+        quality: int,
     ) -> None:
         """ODOMETRY with ``frame_id = MAV_FRAME_LOCAL_FRD``, ``child_frame_id = MAV_FRAME_BODY_FRD``; ``v_b`` is the
         body-frame (FRD) velocity, angular rates are sent as NaN (ArduPilot's pose + velocity path).
@@ -538,29 +601,73 @@ class MavLink:
         qw = [float(q_nb[3]), float(q_nb[0]), float(q_nb[1]), float(q_nb[2])]  # MAVLink: w, x, y, z
         self._send(
             lambda: self.mav.odometry_send(
-                t_usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, float(r_ned[0]), float(r_ned[1]), float(r_ned[2]),
-                qw, float(v_b[0]), float(v_b[1]), float(v_b[2]), math.nan, math.nan, math.nan, cov, vcov,
-                reset_counter, mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, quality,
+                t_usec,
+                MAV_FRAME_LOCAL_FRD,
+                MAV_FRAME_BODY_FRD,
+                float(r_ned[0]),
+                float(r_ned[1]),
+                float(r_ned[2]),
+                qw,
+                float(v_b[0]),
+                float(v_b[1]),
+                float(v_b[2]),
+                math.nan,
+                math.nan,
+                math.nan,
+                cov,
+                vcov,
+                reset_counter,
+                mavlink2.MAV_ESTIMATOR_TYPE_NAIVE,
+                quality,
             )
         )
 
     def send_global_position_sensor(
-        self, *, target_system: int, target_component: int, t_usec: int, processing_us: int, source: str, lat: float,
-        lon: float, h_ellipsoid: float, h_msl: float, sigma_h: float, sigma_v: float, healthy: bool,
+        self,
+        *,
+        target_system: int,
+        target_component: int,
+        t_usec: int,
+        processing_us: int,
+        source: str,
+        lat: float,
+        lon: float,
+        h_ellipsoid: float,
+        h_msl: float,
+        sigma_h: float,
+        sigma_v: float,
+        healthy: bool,
     ) -> None:
         """GLOBAL_POSITION_SENSOR (296) for PX4 auxiliary global position; unhealthy -> GLOBAL_POSITION_UNHEALTHY."""
         flags = 0 if healthy else GLOBAL_POSITION_UNHEALTHY
         self._send(
             lambda: self.mav.global_position_sensor_send(
-                target_system, target_component, 0, t_usec, processing_us, GLOBAL_POSITION_SOURCE[source], flags,
-                int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)), float(h_ellipsoid),
-                float(h_msl), float(sigma_h), float(sigma_v),
+                target_system,
+                target_component,
+                0,
+                t_usec,
+                processing_us,
+                GLOBAL_POSITION_SOURCE[source],
+                flags,
+                int(round(math.degrees(lat) * DEG_E7)),
+                int(round(math.degrees(lon) * DEG_E7)),
+                float(h_ellipsoid),
+                float(h_msl),
+                float(sigma_h),
+                float(sigma_v),
             )
         )
 
     # -- used by the autopilot emulator --------------------------------------------------------------------
-    def send_highres_imu(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray, mag_b_nt: np.ndarray | None,
-                         *, ardupilot_mag_scale: bool = True) -> None:
+    def send_highres_imu(
+        self,
+        t: float,
+        gyro_b: np.ndarray,
+        accel_b: np.ndarray,
+        mag_b_nt: np.ndarray | None,
+        *,
+        ardupilot_mag_scale: bool = True,
+    ) -> None:
         """HIGHRES_IMU as ArduPilot sends it (magnetometer in milligauss x 1000 when ``ardupilot_mag_scale``)."""
         if mag_b_nt is None:
             mag = (0.0, 0.0, 0.0)
@@ -571,8 +678,20 @@ class MavLink:
             fields = 0b111111111
         self._send(
             lambda: self.mav.highres_imu_send(
-                int(round(t * 1e6)), float(accel_b[0]), float(accel_b[1]), float(accel_b[2]), float(gyro_b[0]),
-                float(gyro_b[1]), float(gyro_b[2]), *mag, 1013.25, 0.0, 0.0, 20.0, fields, 0,
+                int(round(t * 1e6)),
+                float(accel_b[0]),
+                float(accel_b[1]),
+                float(accel_b[2]),
+                float(gyro_b[0]),
+                float(gyro_b[1]),
+                float(gyro_b[2]),
+                *mag,
+                1013.25,
+                0.0,
+                0.0,
+                20.0,
+                fields,
+                0,
             )
         )
 
@@ -582,8 +701,14 @@ class MavLink:
     def send_global_position_int(self, t: float, lat: float, lon: float, h_msl: float, v_n: np.ndarray) -> None:
         self._send(
             lambda: self.mav.global_position_int_send(
-                int(t * 1e3) & 0xFFFFFFFF, int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)),
-                int(round(h_msl * 1000)), 0, int(round(v_n[0] * 100)), int(round(v_n[1] * 100)), int(round(v_n[2] * 100)),
+                int(t * 1e3) & 0xFFFFFFFF,
+                int(round(math.degrees(lat) * DEG_E7)),
+                int(round(math.degrees(lon) * DEG_E7)),
+                int(round(h_msl * 1000)),
+                0,
+                int(round(v_n[0] * 100)),
+                int(round(v_n[1] * 100)),
+                int(round(v_n[2] * 100)),
                 65535,
             )
         )

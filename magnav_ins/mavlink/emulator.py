@@ -1,0 +1,223 @@
+"""An autopilot emulator for tests and benchmarks without hardware.
+
+It plays a simulated flight over a map as an ArduPilot-like autopilot would: HEARTBEAT at 1 Hz, HIGHRES_IMU at the
+IMU rate (magnetometer in ArduPilot's milligauss x 1000 scale), ATTITUDE and GLOBAL_POSITION_INT at 5 Hz (for the
+bridge's initialisation), paced to the wall clock (or faster by ``speedup``). It records every position message the
+bridge sends back, so a test can compare them with the truth. Runs in a background thread; MAVLink goes through
+:mod:`.link` (the only pymavlink import).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core.frames import C_nb_from_q, euler_from_q_nb
+from ..core.types import ImuBatch, NavTrajectory
+from .link import MSG_ID, SET_MESSAGE_INTERVAL, CommandMessage, MavLink, OutputMessage
+
+
+def magnetometer_body_nt(traj: NavTrajectory, anomaly_nt: np.ndarray, main_field_ned_nt: np.ndarray) -> np.ndarray:
+    """Body-frame (FRD) magnetometer vector (N,3) nT along a trajectory: the main field (NED, (3,) or (N,3)) plus a
+    total-field anomaly ``anomaly_nt`` (N,) along the main-field direction (the usual small-anomaly approximation:
+    the anomaly of the total field equals the projection of the anomalous vector onto the main field)."""
+    b_main = np.broadcast_to(np.asarray(main_field_ned_nt, float), (len(traj), 3))
+    unit = b_main / np.linalg.norm(b_main, axis=1, keepdims=True)
+    b_n = b_main + np.asarray(anomaly_nt, float)[:, None] * unit
+    c_nb = C_nb_from_q(traj.q_nb)
+    return np.einsum("nji,nj->ni", c_nb, b_n)
+
+
+@dataclass
+class EmulatorRecord:
+    outputs: list[OutputMessage] = field(default_factory=list)
+    commands: list[CommandMessage] = field(default_factory=list)
+    heartbeats_from_bridge: int = 0
+    first_heartbeat_s: float | None = None
+    first_output_s: float | None = None
+    imu_sent: int = 0
+
+
+class AutopilotEmulator:
+    """Streams ``imu`` (and ``mag_b_nt``) from ``truth`` over ``link`` in a background thread.
+
+    ``speedup`` > 1 plays faster than real time; ``send_position`` sends GLOBAL_POSITION_INT + ATTITUDE from the truth
+    (as an autopilot with a GNSS fix before it is lost would); ``t0_usec`` is the autopilot clock at the first sample.
+    """
+
+    def __init__(
+        self,
+        link: MavLink,
+        truth: NavTrajectory,
+        imu: ImuBatch,
+        mag_b_nt: np.ndarray | None = None,
+        *,
+        speedup: float = 1.0,
+        send_position: bool = True,
+        loop: bool = False,
+        stream_on_request: bool = True,
+    ) -> None:
+        if len(truth) != len(imu):
+            raise ValueError("truth and imu must have the same samples")
+        self.link = link
+        self.truth = truth
+        self.imu = imu
+        self.mag_b_nt = mag_b_nt
+        self.speedup = speedup
+        self.send_position = send_position
+        self.loop = loop
+        #: like a fresh ArduPilot link: only HEARTBEAT until SET_MESSAGE_INTERVAL asks for HIGHRES_IMU
+        self.streaming = not stream_on_request
+        self.record = EmulatorRecord()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._time_offset = 0.0  # added to imu.t; a reboot makes the clock restart near 1 s
+        self._reboot_requested = False
+        self._dropout_s = 0.0  # pending request: skip this many seconds of samples
+        self._drop_until = -np.inf
+        self.started_at = 0.0
+
+    def start(self) -> AutopilotEmulator:
+        self.started_at = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="autopilot-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> EmulatorRecord:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        return self.record
+
+    def __enter__(self) -> AutopilotEmulator:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _drain(self) -> None:
+        for msg in self.link.recv(0.0):
+            now = time.monotonic() - self.started_at
+            if isinstance(msg, OutputMessage):
+                self.record.outputs.append(msg)
+                if self.record.first_output_s is None:
+                    self.record.first_output_s = now
+            elif isinstance(msg, CommandMessage):
+                self.record.commands.append(msg)
+                if msg.command == SET_MESSAGE_INTERVAL and int(msg.params[0]) == MSG_ID["HIGHRES_IMU"]:
+                    self.streaming = True
+            elif msg.__class__.__name__ == "Heartbeat":
+                self.record.heartbeats_from_bridge += 1
+                if self.record.first_heartbeat_s is None:
+                    self.record.first_heartbeat_s = now
+
+    def _run(self) -> None:
+        t = self.imu.t
+        n = len(t)
+        k = 0
+        next_hb = 0.0
+        next_pos = 0.0
+        wall0 = time.monotonic()
+        sim0 = t[0]
+        while not self._stop.is_set():
+            if k >= n:
+                if not self.loop:
+                    self._drain()
+                    time.sleep(0.01)
+                    continue
+                k = 0
+                wall0 = time.monotonic()
+                sim0 = t[0]
+                self._time_offset += t[-1] - t[0] + (t[1] - t[0])
+            if not self.streaming:  # the flight goes on, unseen, until the bridge asks for the IMU
+                wall0 = time.monotonic()
+                sim0 = t[k] if k < n else t[-1]
+            sim_now = sim0 + (time.monotonic() - wall0) * self.speedup
+            if self._reboot_requested and k < n:
+                self._time_offset = 1.0 - t[k]
+                self._reboot_requested = False
+            if self._dropout_s > 0.0 and k < n:
+                self._drop_until = t[k] + self._dropout_s
+                self._dropout_s = 0.0
+            while self.streaming and k < n and t[k] <= sim_now:
+                if t[k] < self._drop_until:
+                    k += 1
+                    continue
+                ts = t[k] + self._time_offset
+                mag = None if self.mag_b_nt is None else self.mag_b_nt[k]
+                self.link.send_highres_imu(ts, self.imu.gyro_b[k], self.imu.accel_b[k], mag)
+                self.record.imu_sent += 1
+                if self.send_position and ts >= next_pos:
+                    roll, pitch, yaw = euler_from_q_nb(self.truth.q_nb[k])
+                    self.link.send_attitude(ts, float(roll), float(pitch), float(yaw))
+                    self.link.send_global_position_int(
+                        ts, self.truth.lat[k], self.truth.lon[k], self.truth.h[k], self.truth.v_n[k]
+                    )
+                    next_pos = ts + 0.2
+                k += 1
+            if time.monotonic() >= next_hb:
+                self.link.send_heartbeat(autopilot=True)
+                next_hb = time.monotonic() + 1.0
+            self._drain()
+            time.sleep(0.001)
+
+    def dropout(self, duration_s: float) -> None:
+        """Lose the next ``duration_s`` seconds of IMU samples (the flight goes on; the bridge sees a gap)."""
+        self._dropout_s = float(duration_s)
+
+    def reboot(self) -> None:
+        """Make the autopilot clock jump back to about 1 s, as after a reboot (the flight itself continues)."""
+        self._reboot_requested = True
+
+
+@dataclass(frozen=True)
+class EmulatedFlight:
+    """Truth, corrupted IMU samples and body magnetometer readings for the emulator."""
+
+    truth: NavTrajectory
+    imu: ImuBatch
+    mag_b_nt: np.ndarray
+    date: str
+
+
+def flight_over_map(
+    fmap,
+    *,
+    start: tuple[float, float],
+    heading: float,
+    speed_mps: float,
+    duration_s: float,
+    rate_hz: float,
+    altitude_m: float,
+    grade: str = "tactical",
+    seed: int = 1,
+    date: str = "2024-06-01",
+    mag_noise_nt: float = 1.0,
+) -> EmulatedFlight:
+    """A straight, level flight (``speed_mps`` 0 = at rest) from ``start`` (lat, lon rad) on ``heading`` (rad) over a
+    total-field anomaly map: ideal IMU from inverse mechanisation, ``grade``'s errors injected, and the body-frame
+    magnetometer = IGRF main field + the map's anomaly along it + white noise. Reproducible from ``seed``."""
+    from ..core.frames import meters_to_latlon
+    from ..ins.imu_models import corrupt, get_grade
+    from ..ins.simulate import great_circle, ideal_imu, stationary
+    from ..maps.reference import igrf_ned
+
+    rng = np.random.default_rng(seed)
+    lat0, lon0 = start
+    if speed_mps <= 0.0:
+        truth = stationary(lat0, lon0, altitude_m, heading, duration_s, rate_hz)
+    else:
+        dist = speed_mps * duration_s * 1.2
+        dlat, dlon = meters_to_latlon(dist * np.cos(heading), dist * np.sin(heading), lat0, altitude_m)
+        truth = great_circle(lat0, lon0, lat0 + float(dlat), lon0 + float(dlon), altitude_m, speed_mps, rate_hz)
+        n = int(round(duration_s * rate_hz)) + 1
+        truth = truth.slice(0, min(n, len(truth)))
+    imu, _ = corrupt(ideal_imu(truth), get_grade(grade), rng)
+    main = igrf_ned(lat0, lon0, altitude_m, date).reshape(3)
+    anomaly = np.asarray(fmap.value(truth.lat, truth.lon), float)
+    anomaly = np.where(np.isfinite(anomaly), anomaly, 0.0)
+    mag = magnetometer_body_nt(truth, anomaly, main) + rng.normal(0.0, mag_noise_nt, (len(truth), 3))
+    return EmulatedFlight(truth, imu, mag, date)
