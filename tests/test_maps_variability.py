@@ -87,6 +87,10 @@ def test_crlb_track_accumulates_readings():
     lat, lon = fmap.from_local(np.linspace(200.0, 1800.0, 40), np.full(40, 700.0))
     along, summ = var.crlb_track(fmap, lat, lon, sigma, window=10)
     np.testing.assert_allclose(along, sigma / a, rtol=1e-6)
+    off_lat, off_lon = fmap.from_local(np.array([500.0, 9000.0]), np.array([700.0, 700.0]))
+    along_off, s_off = var.crlb_track(fmap, off_lat, off_lon, sigma)
+    assert np.isfinite(along_off[0]) and np.isnan(along_off[1])
+    assert s_off.semi_minor_m[1] == pytest.approx(s_off.semi_minor_m[0])  # the off-map reading adds nothing
     np.testing.assert_allclose(summ.semi_minor_m[9:], sigma / a / np.sqrt(10), rtol=1e-6)
     np.testing.assert_allclose(summ.semi_minor_m[:9], sigma / a / np.sqrt(np.arange(1, 10)), rtol=1e-6)
     assert np.all(np.isinf(summ.semi_major_m))  # a north ramp says nothing about east

@@ -279,11 +279,14 @@ def crlb_track(
 
     Returns ``(along_gradient_m, summary)``: the single-reading bound ``sigma/|g|`` (N,), and the bound on a
     common position offset of the last ``window`` readings up to each point (all readings so far when ``None``),
-    by summing their Fisher information (a cumulative sum, O(N)). Off-map points contribute nothing."""
+    by summing their Fisher information (a cumulative sum, O(N)). Off-map points contribute nothing (their
+    single-reading bound is NaN)."""
     g = np.asarray(fmap.gradient_ne(np.atleast_1d(lat), np.atleast_1d(lon)), float)
     j = fisher_information_ne(g, sigma)
     j = np.where(np.isfinite(j), j, 0.0)
     along = crlb_along_gradient(np.where(np.isfinite(g), g, 0.0), sigma)
+    off = ~np.all(np.isfinite(g.reshape(g.shape[0], -1)), axis=1)
+    along[off] = np.nan  # off the map: no reading, no bound
     cum = np.cumsum(j, axis=0)
     if window is not None:
         if int(window) < 1:
