@@ -3,7 +3,12 @@ marked ``shared_data`` and skipped on a fresh clone without it."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+# small-matrix BLAS is faster single-threaded (see magnav_ins/__init__.py); set before numpy is imported
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 import pytest
 
