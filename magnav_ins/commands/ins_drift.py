@@ -1,8 +1,8 @@
 """``magnav-ins ins drift --grade GRADE [--duration S] [--runs N] [--seed S] [--out DIR]``: free-inertial error
 growth of an IMU grade (Monte Carlo beside the error model's 1-sigma; the analogue of Storms 2009 Fig. 2.1).
 
-Scenario: a stationary, level INS (default 40 N, 84 W, 200 m; heading north), free vertical channel unless
-``--altitude-hold``. Each run draws initial errors (default 1-sigma: 1 m position per axis, 0.01 m/s velocity per
+Scenario: a stationary, level INS (default 40 N, 84 W, 200 m; heading north), or with ``--speed V`` straight and
+level flight due north at V m/s; free vertical channel unless ``--altitude-hold``. Each run draws initial errors (default 1-sigma: 1 m position per axis, 0.01 m/s velocity per
 axis, tilt 0.05 mrad about north and east and 0.5 mrad in heading) and the grade's IMU errors, and integrates the
 corrupted samples with the compiled batch mechanisation. Writes DIR/drift.json and DIR/drift.png (atomically) and
 prints a short table.
@@ -48,6 +48,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=["0.002865", "0.002865", "0.02865"],
         metavar=("N", "E", "D"),
         help="initial tilt 1-sigmas about north, east, down, deg (default 0.05, 0.05, 0.5 mrad)",
+    )
+    p.add_argument(
+        "--speed", default="0", metavar="MPS", help="0: stationary (default); > 0: straight and level due north"
     )
     p.add_argument("--altitude-hold", action="store_true", help="hold the height (perfect height aid)")
     p.add_argument("--quiet", action="store_true", help="print nothing")
@@ -98,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
             _num("tilt-sigma-deg", x, lo=0.0, lo_open=False) * DEG_TO_RAD for x in args.tilt_sigma_deg
         ),
         altitude_hold=bool(args.altitude_hold),
+        speed_mps=_num("speed", args.speed, lo=0.0, lo_open=False, hi=1000.0),
     )
     n_samples = cfg.duration_s * cfg.rate_hz * cfg.runs
     if n_samples > 2e8:
@@ -116,7 +120,10 @@ def run(args: argparse.Namespace) -> int:
         "seed": cfg.seed,
         "duration_s": cfg.duration_s,
         "rate_hz": cfg.rate_hz,
-        "scenario": "stationary, level, heading north",
+        "scenario": "stationary, level, heading north"
+        if cfg.speed_mps == 0.0
+        else f"straight and level due north at {cfg.speed_mps:g} m/s",
+        "speed_mps": cfg.speed_mps,
         "lat_deg": cfg.lat / DEG_TO_RAD,
         "lon_deg": cfg.lon / DEG_TO_RAD,
         "h_m": cfg.h,
@@ -163,7 +170,8 @@ def _plot(res, path: Path) -> None:  # noqa: ANN001
     ax.plot(tm, res.sigma_h_model / scale, "C3--", lw=2, label="error model 1-sigma")
     ax.set_xlabel("time (min)")
     ax.set_ylabel(f"horizontal error ({unit})")
-    ax.set_title(f"Free-inertial drift, {res.grade.name} grade (stationary)")
+    what = "stationary" if res.config.speed_mps == 0.0 else f"{res.config.speed_mps:g} m/s due north"
+    ax.set_title(f"Free-inertial drift, {res.grade.name} grade ({what})")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -175,7 +183,8 @@ def _plot(res, path: Path) -> None:  # noqa: ANN001
 def _table(res, wall: float, out: Path) -> None:  # noqa: ANN001
     w = sys.stdout.write
     w(f"free-inertial drift: grade {res.grade.name}, {res.config.runs} runs, {res.config.duration_s:g} s, "
-      f"stationary ({wall:.1f} s)\n")  # fmt: skip
+      f"{'stationary' if res.config.speed_mps == 0.0 else f'{res.config.speed_mps:g} m/s north'} "
+      f"({wall:.1f} s)\n")  # fmt: skip
     w(f"{'t [s]':>8}  {'MC RMS horiz [m]':>17}  {'model 1-sigma [m]':>17}  {'MC/model':>8}\n")
     n = len(res.t)
     for k in sorted({int(round(i * (n - 1) / 6)) for i in range(7)}):

@@ -29,7 +29,9 @@ Scale-factor and misalignment errors are not states of this model (they act thro
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 import numpy as np
 from scipy.linalg import expm
@@ -240,6 +242,26 @@ def propagate_covariance(
     if altitude_hold:
         P = _hold(P)
     out[0] = P
+    with _single_thread_blas():
+        _propagate(P, out, t_out, traj, f_src_t, f_src, C_all, grade, dt_step, altitude_hold)
+    return t_out, out
+
+
+@contextlib.contextmanager
+def _single_thread_blas() -> Iterator[None]:
+    """Small (30x30) matrix work is ~100x slower with a multi-threaded BLAS on a busy machine; limit it to one
+    thread here when ``threadpoolctl`` is available (it is optional)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+def _propagate(P, out, t_out, traj, f_src_t, f_src, C_all, grade, dt_step, altitude_hold) -> None:  # noqa: ANN001
+    n_steps = len(t_out) - 1
     cache: tuple[bytes, FloatArray, FloatArray] | None = None
     for k in range(n_steps):
         tm = t_out[k]
@@ -256,7 +278,6 @@ def propagate_covariance(
         if altitude_hold:
             P = _hold(P)
         out[k + 1] = P
-    return t_out, out
 
 
 def _hold(P: FloatArray) -> FloatArray:
