@@ -153,3 +153,16 @@ def test_altitude_is_explicit():
         m.value(la, lo, h=1000.0)
     m2 = _geo_map(_bilin)  # no tolerance: h ignored
     np.testing.assert_array_equal(m2.value(la, lo, h=5000.0), m2.value(la, lo))
+
+
+def test_gridmap_is_a_fieldmap():
+    from magnav_ins.core.protocols import FieldMap
+
+    assert isinstance(_geo_map(_bilin), FieldMap)
+
+
+def test_query_on_the_last_node_is_on_the_map():
+    m = _geo_map(_bilin)
+    la, lo = np.array([-19.0 * DEG, -20.0 * DEG]), np.array([141.5 * DEG, 140.0 * DEG])
+    for meth in ("bilinear", "bicubic"):
+        np.testing.assert_allclose(m.value(la, lo, method=meth), _bilin(la, lo), atol=1e-9)

@@ -136,6 +136,8 @@ class GridMap:
             raise MapError(f"GridMap '{name}': every value is NaN (an empty map)")
         v = np.where(np.isfinite(v), v, np.nan)
         self._v3 = np.ascontiguousarray(v.reshape(ny, nx, ncomp))
+        # scalar fast path: a C-contiguous (ny, nx) view of the same memory
+        self._v2 = self._v3.reshape(ny, nx) if ncomp == 1 else None
         alt = np.asarray(altitude_m, dtype=float)
         if alt.ndim == 0:
             if not np.isfinite(alt):
@@ -367,6 +369,13 @@ class GridMap:
         else:
             raise MapError(f"GridMap: unknown interpolation method {method!r}; expected 'bilinear' or 'bicubic'")
         v3, y0, dy, x0, dx, per = self._v3, self._y0, self._dy, self._x0, self._dx, self._period
+        if method == "bilinear" and not gradient and v3.shape[2] == 1:
+            v2 = self._v2
+
+            def run_scalar(yq: FloatArray, xq: FloatArray) -> FloatArray:
+                return interp.bilinear_scalar(v2, y0, dy, x0, dx, yq, xq, per)[:, None]
+
+            return run_scalar
 
         def run(yq: FloatArray, xq: FloatArray) -> FloatArray:
             return fn(v3, y0, dy, x0, dx, yq, xq, per)

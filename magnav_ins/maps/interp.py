@@ -22,17 +22,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 _NAN = np.nan
+_EDGE = 1e-9  # grid-index tolerance at the edges: a query on the last node is not lost to rounding
 
 
 @nb.njit(cache=True, inline="always")
 def _cell(q: float, q0: float, dq: float, n: int, period: float) -> tuple[int, float]:
     """Cell index ``i`` in ``[0, n-2]`` and fraction ``t`` in ``[0, 1]``; ``i = -1`` when outside the axis."""
     d = q - q0
-    if period > 0.0:
+    if period > 0.0 and (d < 0.0 or d >= period):
         d = d - period * np.floor(d / period)
     f = d / dq
-    if not (f >= 0.0 and f <= n - 1):  # also catches NaN
+    if not (f >= -_EDGE and f <= n - 1 + _EDGE):  # also catches NaN
         return -1, 0.0
+    f = min(max(f, 0.0), n - 1.0)
     i = int(f)
     if i > n - 2:
         i = n - 2
@@ -72,6 +74,46 @@ def bilinear(
                 + w10 * values[i + 1, j, m]
                 + w11 * values[i + 1, j + 1, m]
             )
+    return out
+
+
+@nb.njit(cache=True)
+def bilinear_scalar(
+    values: NDArray[np.float64],
+    y0: float,
+    dy: float,
+    x0: float,
+    dx: float,
+    yq: NDArray[np.float64],
+    xq: NDArray[np.float64],
+    period: float,
+) -> NDArray[np.float64]:
+    """:func:`bilinear` for a scalar grid ``values`` (ny, nx): the hot path of map queries, shape ``(N,)``."""
+    ny, nx = values.shape
+    n = yq.shape[0]
+    out = np.empty(n)
+    idy = 1.0 / dy
+    idx = 1.0 / dx
+    ymax = ny - 1.0
+    xmax = nx - 1.0
+    for k in range(n):
+        fy = (yq[k] - y0) * idy
+        d = xq[k] - x0
+        if period > 0.0 and (d < 0.0 or d >= period):
+            d -= period * np.floor(d / period)
+        fx = d * idx
+        if not (fy >= -_EDGE and fy <= ymax + _EDGE and fx >= -_EDGE and fx <= xmax + _EDGE):
+            out[k] = _NAN
+            continue
+        fy = min(max(fy, 0.0), ymax)
+        fx = min(max(fx, 0.0), xmax)
+        i = min(int(fy), ny - 2)
+        j = min(int(fx), nx - 2)
+        ty = fy - i
+        tx = fx - j
+        a = values[i, j] + tx * (values[i, j + 1] - values[i, j])
+        b = values[i + 1, j] + tx * (values[i + 1, j + 1] - values[i + 1, j])
+        out[k] = a + ty * (b - a)
     return out
 
 
