@@ -20,11 +20,11 @@ start = [-35.0, 149.0]
 end = [-35.0, 149.5]
 altitude_m = 500.0
 speed_mps = 50.0
-duration_s = 60.0
+duration_s = 30.0
 
 [imu]
 grade = "tactical"
-rate_hz = 20.0
+rate_hz = 10.0
 """
 
 
@@ -51,7 +51,7 @@ def test_run_tiny_drift(tmp_path, capsys):
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["runs"] == 2 and doc["seed"] == 5 and doc["estimators"] == {}
     fi = doc["free_inertial"]
-    # 60 s of tactical-grade drift from 10 m initial position sigma: metres to hundreds of metres, not zero
+    # 30 s of tactical-grade drift from 10 m initial position sigma: metres to hundreds of metres, not zero
     assert 1.0 < fi["rms_horizontal_m"] < 1000.0
     assert fi["max_horizontal_m"] >= fi["rms_horizontal_m"] >= 0.0
     assert (out / "free_inertial.png").stat().st_size > 0
@@ -65,7 +65,7 @@ def test_run_tiny_drift(tmp_path, capsys):
 
 def test_run_user_errors_exit_2(tmp_path, capsys):
     sc = tmp_path / "bad.toml"
-    sc.write_text(TINY.replace("rate_hz = 20.0", 'rate_hz = "fast"'))
+    sc.write_text(TINY.replace("rate_hz = 10.0", 'rate_hz = "fast"'))
     assert _main(["run", str(sc), "--out", str(tmp_path / "o")]) == 2
     msg = capsys.readouterr().out
     assert "'imu.rate_hz'" in msg and "line 15" in msg

@@ -41,7 +41,7 @@ interval_s = 10.0
 
 [[estimator]]
 name = "ml+ukf"
-matcher = { kind = "ml", window = 5 }
+matcher = { kind = "ml", ratio_threshold = 2.5 }
 fusion = { kind = "ukf" }
 
 [[estimator]]
@@ -80,7 +80,11 @@ def test_good_scenario_and_defaults(tmp_path):
         ('grade = "tactical"', "grade = 3", "imu.grade", "grade = 3"),  # wrong type
         ("sigma = 1.0", 'sigma = "1 mGal"', "sensor.sigma", "sigma = "),  # units in the value, not the key
         ("sigma = 1.0", "sigma = -1.0", "sensor.sigma", "sigma = "),  # out of range
-        ("batch = 30 }", "batch = 30, bogus = 1 }\ncolour = 2", "estimator[1].colour", "colour = 2"),
+        ("batch = 30 }", "batch = 30 }\ncolour = 2", "estimator[1].colour", "colour = 2"),
+        ("batch = 30 }", "batch = 30, bogus = 1 }", "estimator[1].matcher.bogus", "bogus = 1"),  # registry keys
+        ("batch = 30 }", 'batch = "thirty" }', "estimator[1].matcher", "thirty"),  # registry types
+        ('kind = "pmht"', 'kind = "pmhtt"', "estimator[1].matcher.kind", "pmhtt"),
+        ('fusion = { kind = "ukf" }\n\n[[', 'fusion = { kind = "ekf" }\n\n[[', "estimator[0].fusion.kind", "ekf"),
         ("rate_hz = 50.0", "rate_hz = 50.0\nrate_ft = 2", "imu.rate_ft", "rate_ft"),
         ("start = [-38.0, 144.5]", "start = [-138.0, 144.5]", "trajectory.start", "start = "),
         ('kind = "gravimeter"', 'kind = "scalar_magnetometer"', "sensor.kind", "scalar_magnetometer"),

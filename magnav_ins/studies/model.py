@@ -6,9 +6,10 @@ Per run (seed sequence ``ss``, see :mod:`.runner`), three independent generators
 The truth trajectory, the ideal IMU and the map are deterministic and shared by all runs; they are built once per
 process and memoised (keyed by the scenario) so parallel workers do not rebuild them for every run.
 
-The free-inertial baseline integrates the corrupted IMU from the perturbed initial state with the vertical channel
-held at the truth's initial height (a barometric/height aid; an unaided vertical channel diverges within minutes,
-Titterton & Weston sec. 3.5.2), exactly as the aided estimators receive it.
+Every estimator and the free-inertial baseline (``aiding.fusion`` kind ``free_inertial``: the same INS with its
+covariance, no fixes) run through :class:`magnav_ins.pipeline.Pipeline` on the same corrupted IMU, perturbed
+initial state and readings, with the vertical channel held at the initial height (``altitude_hold``; a barometric
+aid - an unaided vertical channel diverges within minutes).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import numpy as np
 
 from ..core.errors import ConfigError, MagnavError
 from ..core.frames import C_nb_from_q, meters_to_latlon
-from ..core.types import FieldReadings, NavState, NavTrajectory
+from ..core.types import FieldReadings, NavEstimate, NavState, NavTrajectory
 from ..core.units import DEG_TO_RAD
 from .runner import EstimatorOutput, RunOutput
 from .scenario import FREE_INERTIAL, Scenario
@@ -208,9 +209,14 @@ def _resample_along_line(line: dict[str, np.ndarray], lat: np.ndarray, lon: np.n
 # ------------------------------------------------------------------------------------------------ the model
 @dataclass(frozen=True)
 class PipelineModel:
-    """A :class:`~magnav_ins.studies.runner.StudyModel` built from a validated :class:`Scenario`."""
+    """A :class:`~magnav_ins.studies.runner.StudyModel` built from a validated :class:`Scenario`.
+
+    Every estimator and the free-inertial baseline run through :class:`magnav_ins.pipeline.Pipeline` with the
+    same corrupted IMU, initial state and readings; their outputs are reported on at most ``max_samples``
+    truth times."""
 
     scenario: Scenario
+    max_samples: int = 400
 
     @property
     def name(self) -> str:
@@ -225,7 +231,6 @@ class PipelineModel:
 
     def run(self, seed: np.random.SeedSequence) -> RunOutput:
         from ..ins import imu_models
-        from ..ins.strapdown import integrate
 
         sc = self.scenario
         sh = self.shared()
@@ -237,66 +242,110 @@ class PipelineModel:
         readings = None
         if sc.sensor is not None:
             readings = simulate_readings(sc, truth, sh["map"], np.random.default_rng(child(seed, 2)))
-        hold = float(truth.h[0])
-        outs: list[EstimatorOutput] = []
-        for j in range(len(sc.estimators)):
-            outs.append(
-                run_estimator(sc, j, truth, imu, init, readings, sh["map"], np.random.default_rng(child(seed, 10 + j)))
+        dt_out = output_dt(sc, truth, self.max_samples)
+        sel = np.unique(
+            np.append(
+                np.searchsorted(truth.t, np.arange(truth.t[0], truth.t[-1] + 1e-9, dt_out) - 1e-6), len(truth.t) - 1
             )
-        free = integrate(init, imu, altitude_hold=hold)
-        outs.append(EstimatorOutput(FREE_INERTIAL, None, FREE_INERTIAL, free.lat, free.lon))
-        return RunOutput(truth.t, truth.lat, truth.lon, tuple(outs))
+        )
+        t_out = truth.t[sel]
+        outs = [
+            run_estimator(sc, j, t_out, imu, init, readings, sh["map"], np.random.default_rng(child(seed, 10 + j)))
+            for j in range(len(sc.estimators))
+        ]
+        outs.append(run_estimator(sc, None, t_out, imu, init, None, None, None))
+        return RunOutput(t_out, truth.lat[sel], truth.lon[sel], tuple(outs))
+
+
+def initial_estimate(sc: Scenario, init: NavState) -> NavEstimate:
+    """The fusers' prior: ``init`` with the ``[init]`` sigmas and the grade's bias sigmas (LAYOUT_15)."""
+    from ..ins.error_model import initial_covariance
+    from ..ins.imu_models import get_grade
+
+    ic = sc.init
+    P0 = initial_covariance(
+        get_grade(sc.imu.grade),
+        position_sigma_m=max(ic.position_sigma_m, 1e-3),
+        velocity_sigma_mps=max(ic.velocity_sigma_mps, 1e-4),
+        attitude_sigma_rad=np.maximum(np.asarray(ic.attitude_sigma_deg) * DEG_TO_RAD, 1e-7),
+    )
+    return NavEstimate(init, P0)
+
+
+def output_dt(sc: Scenario, truth: NavTrajectory, max_samples: int) -> float:
+    """Output step (s) of the estimators: a whole number of IMU periods giving at most about ``max_samples``
+    samples over the run (each output sample costs a covariance update in the fusers)."""
+    dt_imu = 1.0 / sc.imu.rate_hz
+    span = float(truth.t[-1] - truth.t[0])
+    return max(1, int(np.ceil(span / max(max_samples - 1, 1) / dt_imu))) * dt_imu
 
 
 def run_estimator(
     sc: Scenario,
-    j: int,
-    truth: NavTrajectory,
+    j: int | None,
+    t_out: np.ndarray,
     imu: Any,
     init: NavState,
-    readings: FieldReadings,
+    readings: FieldReadings | None,
     fmap: Any,
-    rng: np.random.Generator,
+    rng: np.random.Generator | None,
 ) -> EstimatorOutput:
-    """Run estimator ``j`` of the scenario through :mod:`magnav_ins.pipeline` and resample its output onto the
-    truth's time base."""
-    from .. import pipeline
+    """Run estimator ``j`` of the scenario (``None``: the free-inertial baseline) through
+    :class:`magnav_ins.pipeline.Pipeline` and resample its track and covariance onto ``t_out``."""
+    from ..aiding.fusion import ImuNoise, make_fuser
+    from ..aiding.matchers.registry import RECURSIVE_KINDS, build_matcher
+    from ..ins.imu_models import get_grade
+    from ..pipeline import Pipeline
 
-    est = sc.estimators[j]
+    hold = float(init.h)
+    noise = ImuNoise.from_grade(get_grade(sc.imu.grade))
+    prior = initial_estimate(sc, init)
+    if j is None:
+        name, mkind, fkind = FREE_INERTIAL, None, FREE_INERTIAL
+        fuser = make_fuser(FREE_INERTIAL, prior, noise, altitude_hold=hold)
+        pipe = Pipeline(fuser)
+        where = sc.where("imu")
+    else:
+        est = sc.estimators[j]
+        name, mkind, fkind = est.name, est.matcher_kind, est.fusion_kind
+        where = sc.where(f"estimator[{j}]")
+        try:
+            fopts = {k: v for k, v in est.fusion.items() if k != "kind"}
+            fopts.setdefault("altitude_hold", hold)
+            fuser = make_fuser(fkind, prior, noise, **fopts)
+            matcher = build_matcher(est.matcher)
+            batch = est.matcher.get("batch", getattr(matcher, "batch", None))
+            default = int(batch) if (batch and mkind not in RECURSIVE_KINDS) else 1
+            pipe = Pipeline(
+                fuser,
+                matcher,
+                fmap,
+                window=est.window or default,
+                match_every=est.match_every or default,
+                rng=rng,
+            )
+        except (MagnavError, TypeError) as exc:
+            raise ConfigError(f"{where}: {exc}") from None
     try:
-        res = pipeline.run_configured(
-            matcher=est.matcher,
-            fusion=est.fusion,
-            fmap=fmap,
-            imu=imu,
-            readings=readings,
-            init=init,
-            init_sigmas=sc.init,
-            grade=sc.imu.grade,
-            altitude_hold=float(truth.h[0]),
-            rng=rng,
-        )
+        res = pipe.run(imu, readings, output_dt=float(np.min(np.diff(t_out))) if len(t_out) > 1 else 1.0)
     except MagnavError as exc:
-        raise ConfigError(f"{sc.where(f'estimator[{j}]')}: {exc}") from None
+        raise ConfigError(f"{where}: {exc}") from None
     nav = res.trajectory
-    lat = np.interp(truth.t, nav.t, nav.lat)
-    lon = np.interp(truth.t, nav.t, np.unwrap(nav.lon))
-    cov = None
-    if getattr(res, "cov_ne", None) is not None and len(res.cov_t):
-        cov = np.stack([np.interp(truth.t, res.cov_t, res.cov_ne[:, a, b]) for a in range(2) for b in range(2)], -1)
-        cov = cov.reshape(-1, 2, 2)
+    lat = np.interp(t_out, nav.t, nav.lat)
+    lon = np.interp(t_out, nav.t, np.unwrap(nav.lon))
+    P = np.asarray(res.P)
+    cov = np.stack([np.interp(t_out, nav.t, P[:, a, b]) for a in range(2) for b in range(2)], -1).reshape(-1, 2, 2)
     fixes = list(res.fixes)
-    fix_t = np.array([f.t for f in fixes], float)
     return EstimatorOutput(
-        est.name,
-        est.matcher_kind,
-        est.fusion_kind,
+        name,
+        mkind,
+        fkind,
         lat,
         lon,
         cov,
-        fix_t,
+        np.array([f.t for f in fixes], float),
         np.array([f.lat for f in fixes], float),
         np.array([f.lon for f in fixes], float),
-        np.array([f.cov_ne for f in fixes], float).reshape(-1, 2, 2),
+        np.array([np.asarray(f.cov_ne, float) for f in fixes], float).reshape(-1, 2, 2),
         np.array([f.available for f in fixes], bool),
     )

@@ -165,11 +165,17 @@ class SensorConfig:
 
 @dataclass(frozen=True)
 class EstimatorConfig:
-    """One estimator: a matcher spec (``{"kind": ..., params}``) and a fusion spec (``{"kind": "ukf"|...}``)."""
+    """One estimator: a matcher spec (``{"kind": ..., params}``, keys checked by
+    ``aiding.matchers.registry.build_matcher``), a fusion spec (``{"kind": "ukf"|"graph"|"free_inertial", options}``,
+    ``aiding.fusion.make_fuser``) and the pipeline's ``window`` (readings per batch-matcher window) and
+    ``match_every`` (readings between match attempts); both default to the matcher's ``batch`` when it has one
+    (Wang's non-overlapping batches), else 1."""
 
     name: str
     matcher: dict[str, Any] = field(compare=False)
     fusion: dict[str, Any] = field(compare=False)
+    window: int | None = None
+    match_every: int | None = None
 
     @property
     def matcher_kind(self) -> str:
@@ -411,6 +417,32 @@ def _spec(ctx: _Ctx, key: str, v: Any) -> dict[str, Any]:
     return dict(v)
 
 
+def _check_matcher(ctx: _Ctx, key: str, spec: dict[str, Any]) -> None:
+    """Kind and keys against ``aiding.matchers.registry`` (so the error names the key's line), then a trial
+    build for the value types."""
+    from ..aiding.matchers import registry
+
+    if spec["kind"] not in registry.KINDS:
+        raise ctx.error(f"{key}.kind", f"unknown matcher {spec['kind']!r}; expected one of {sorted(registry.KINDS)}")
+    allowed = set(registry.matcher_keys(spec["kind"]))
+    for k in spec:
+        if k != "kind" and k not in allowed:
+            raise ctx.error(
+                f"{key}.{k}", f"unknown key for matcher {spec['kind']!r}; expected one of {sorted(allowed)}"
+            )
+    try:
+        registry.build_matcher(spec)
+    except ConfigError as exc:
+        raise ctx.error(key, str(exc)) from None
+
+
+def _check_fusion(ctx: _Ctx, key: str, spec: dict[str, Any]) -> None:
+    from ..aiding.fusion import FUSER_KINDS
+
+    if spec["kind"] not in FUSER_KINDS:
+        raise ctx.error(f"{key}.kind", f"unknown fusion {spec['kind']!r}; expected one of {', '.join(FUSER_KINDS)}")
+
+
 def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
     ests = data.get("estimator", [])
     if not isinstance(ests, list):
@@ -421,16 +453,20 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
         p = f"estimator[{i}]"
         if not isinstance(e, dict):
             raise ctx.error(p, "expected an [[estimator]] table")
-        _check_keys(ctx, p, e, {"name", "matcher", "fusion"}, {"name", "matcher", "fusion"})
+        _check_keys(ctx, p, e, {"name", "matcher", "fusion", "window", "match_every"}, {"name", "matcher", "fusion"})
         name = _str(ctx, f"{p}.name", e["name"])
         if not name or name == FREE_INERTIAL:
             raise ctx.error(f"{p}.name", f"{name!r} is reserved or empty; the {FREE_INERTIAL} baseline is always added")
         if name in seen:
             raise ctx.error(f"{p}.name", f"duplicate estimator name {name!r}")
         seen.add(name)
-        out.append(
-            EstimatorConfig(name, _spec(ctx, f"{p}.matcher", e["matcher"]), _spec(ctx, f"{p}.fusion", e["fusion"]))
-        )
+        win = _int(ctx, f"{p}.window", e["window"], minimum=1) if "window" in e else None
+        every = _int(ctx, f"{p}.match_every", e["match_every"], minimum=1) if "match_every" in e else None
+        matcher = _spec(ctx, f"{p}.matcher", e["matcher"])
+        fusion = _spec(ctx, f"{p}.fusion", e["fusion"])
+        _check_matcher(ctx, f"{p}.matcher", matcher)
+        _check_fusion(ctx, f"{p}.fusion", fusion)
+        out.append(EstimatorConfig(name, matcher, fusion, win, every))
     return tuple(out)
 
 
