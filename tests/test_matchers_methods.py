@@ -1,0 +1,261 @@
+"""Per-method checks of the matchers against known truth (synthetic maps, fixed seeds)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from matcher_scenarios import KIND_G, KIND_TF, KIND_V, ORIGIN, latlon, local, make_window, nav_estimate
+from scipy.ndimage import gaussian_filter1d
+
+from magnav_ins.aiding.matchers import BayesGridMatcher, LikelihoodMatcher, ParticleFilter, PMHTMatcher
+from magnav_ins.aiding.matchers._local import LocalFrame
+from magnav_ins.aiding.matchers.bayes_grid import _tail_sigma
+from magnav_ins.core.protocols import MatchWindow
+from magnav_ins.core.types import FieldReadings
+from magnav_ins.core.units import NT_PER_MILLIGAUSS
+from magnav_ins.maps.synthetic import hallway_map, random_field_map
+from magnav_ins.maps.track import TrackMap
+
+
+# ---------------------------------------------------------------------------------------------- likelihood
+def test_ml_full_map_scan_finds_true_location():
+    rng = np.random.default_rng(21)
+    fmap = random_field_map((300, 300), 5.0, 40.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    nz = 25  # a 120 m section (Shockley sec. 4.5: sections make a match distinctive)
+    truth = np.array([812.3, 433.7]) + 5.0 * np.arange(nz)[:, None] * np.array([0.6, 0.8])
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 1.0, nz)
+    # INS off by 500 m: only a whole-map scan (no search window) can find it
+    off = np.array([400.0, -300.0])
+    w = make_window(fmap, np.arange(float(nz)), truth, z, 1.0, KIND_TF, off, np.eye(2), np.zeros(2))
+    fix = LikelihoodMatcher(method="ml", search_window=False).match(w, fmap)
+    assert fix.available, fix.reason
+    d = local(fmap, fix.lat, fix.lon) - truth[-1]
+    assert np.hypot(*d) < 4.0  # the 1.5 km map is scanned on its 5 m nodes (max_nodes)
+    assert d @ np.linalg.solve(fix.cov_ne, d) < 9.0
+
+
+def _road(seed: int):
+    rng = np.random.default_rng(seed)
+    fr = LocalFrame(np.radians(39.8), np.radians(-84.0))
+    s = np.arange(0.0, 1000.0, 1.0)  # a 1 km winding road, distance-sampled every 1 m (Shockley sec. 4.4)
+    n, e = 100.0 * np.sin(s / 150.0), s
+    lat, lon = fr.to_latlon(n, e)
+    prof = gaussian_filter1d(rng.normal(0, 1, s.size + 100), 5)[50:-50]
+    prof *= 30.0 / prof.std()
+    return fr, n, e, lat, lon, prof, TrackMap(lat, lon, 0.0, prof, kind=KIND_TF)
+
+
+def test_mlr_fewer_fixes_but_more_within_3m_than_ml_on_road():
+    fr, n, e, lat, lon, prof, road = _road(3)
+    sig, nz, trials = 3.0, 10, 80
+    stats = {}
+    for method in ("ml", "mlr"):
+        rr = np.random.default_rng(5)
+        m = LikelihoodMatcher(method=method, search_window=False)
+        issued, good = 0, 0
+        for _ in range(trials):
+            j = int(rr.integers(30, 970))
+            idx = np.arange(j - nz + 1, j + 1)
+            z = prof[idx] + rr.normal(0, sig, nz)
+            w = MatchWindow(
+                FieldReadings(idx * 1.0, z, sig, KIND_TF),
+                lat[idx],
+                lon[idx],
+                np.zeros(nz),
+                np.tile(np.eye(2) * 1e6, (nz, 1, 1)),
+                np.zeros((nz, 2)),
+            )
+            fix = m.match(w, road)
+            if fix.available:
+                issued += 1
+                fn, fe = fr.to_ne(fix.lat, fix.lon)
+                good += np.hypot(fn - n[j], fe - e[j]) < 3.0
+            else:
+                assert "ambiguous" in fix.reason or "spread" in fix.reason, fix.reason
+        stats[method] = (issued / trials, good / max(issued, 1))
+    (a_ml, q_ml), (a_mlr, q_mlr) = stats["ml"], stats["mlr"]
+    assert a_mlr < a_ml
+    assert q_mlr > q_ml + 0.05, stats
+    assert a_mlr > 0.3, stats  # the ratio test still lets most distinctive sections through
+
+
+def test_abl_bin_mass_picks_broad_peak_over_needle():
+    # hand-made surface on a 1-D row of candidates: a needle (one node) and a broad peak (5 nodes)
+    from magnav_ins.aiding.matchers.likelihood import Surface
+
+    fr = LocalFrame(ORIGIN[0], ORIGIN[1])
+    e = np.arange(0.0, 100.0, 1.0)
+    logl = np.full(e.size, -50.0)
+    logl[20] = 0.0  # needle
+    logl[70:75] = -0.2  # broad
+    surf = Surface(fr, logl, np.zeros_like(e), e, None, 1.0, 1e9, 1.0, (np.inf, np.inf))
+    ml = LikelihoodMatcher(method="ml", track_sigma_m=0.0).decide(surf, 0.0)
+    abl = LikelihoodMatcher(method="abl", bin_size_m=5.0, track_sigma_m=0.0).decide(surf, 0.0)
+    assert fr.to_ne(ml.lat, ml.lon)[1] == pytest.approx(20.0, abs=1e-6)
+    assert fr.to_ne(abl.lat, abl.lon)[1] == pytest.approx(72.0, abs=1e-6)
+
+
+def test_demeaning_removes_a_constant_bias():
+    rng = np.random.default_rng(8)
+    fmap = random_field_map((200, 200), 5.0, 40.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    s = 5.0 * np.arange(20)  # an L-shaped 95 m section
+    truth = np.array([500.0, 500.0]) + np.column_stack([np.minimum(s, 50.0), np.maximum(s - 50.0, 0.0)])
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + 80.0 + rng.normal(0, 1.0, s.size)  # uncalibrated sensor: +80 nT bias
+    off, P = np.array([10.0, -8.0]), np.eye(2) * 225
+    w = make_window(fmap, np.arange(float(s.size)), truth, z, 1.0, KIND_TF, off, P, np.zeros(2))
+    fix = LikelihoodMatcher(method="ml", demean=True).match(w, fmap)
+    assert fix.available, fix.reason
+    assert np.hypot(*(local(fmap, fix.lat, fix.lon) - truth[-1])) < 2.0
+    biased = LikelihoodMatcher(method="ml").match(w, fmap)  # without demeaning the bias wrecks the match
+    assert not biased.available or np.hypot(*(local(fmap, biased.lat, biased.lon) - truth[-1])) > 2.0
+
+
+# ---------------------------------------------------------------------------------------------- Bayes grid
+def test_tail_sigma_of_gaussian_is_sigma():
+    x = np.arange(-10.0, 10.0, 0.01)
+    pdf = np.exp(-0.5 * (x - 0.3) ** 2 / 1.7**2)
+    assert _tail_sigma(pdf, x, 0.3, 0.1587) == pytest.approx(1.7, rel=2e-3)
+
+
+def test_bayes_grid_hallway_rms_below_0p3_m_table_4_1():
+    """Storms Table 4.1 (short): dt 0.1 s, sigma_a 0.08 m/s^2, updates every 1.5 s, 1 mG noise, initial sigma
+    1.5 m, V_X 0.5 m/s, filter at (0, 0) and vehicle at (0, 1.145) m; 10 runs of 30 s; Storms' R (16 %/84 %)."""
+    hm = hallway_map(np.random.default_rng(7))
+    bg = BayesGridMatcher(covariance="spread")
+    dt, sa, smeas = 0.1, 0.08, 1.0 * NT_PER_MILLIGAUSS
+    F = np.eye(4)
+    F[0, 2] = F[1, 3] = dt
+    q = np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]) * sa**2
+    Q = np.zeros((4, 4))
+    Q[np.ix_([0, 2], [0, 2])] = q
+    Q[np.ix_([1, 3], [1, 3])] = q
+    H = np.eye(2, 4)
+    errs = []
+    for run in range(10):
+        r = np.random.default_rng(100 + run)
+        xt = np.array([0.0, 1.145, 0.5, 0.0])  # north (Storms X), east (Y), v_n, v_e
+        x = np.array([0.0, 0.0, 0.5, 0.0])
+        P = np.diag([1.5**2, 1.5**2, 0.01, 0.01])
+        st = None
+        for k in range(1, 301):
+            xt = F @ xt
+            x, P = F @ x, F @ P @ F.T + Q
+            if k % 15:
+                continue
+            lat, lon = latlon(hm, xt[0], xt[1])
+            z = hm.value(lat, lon)[0] + r.normal(0, smeas, 3)
+            pr = nav_estimate(hm, k * dt, x[:2], x[2:], P[:2, :2])
+            st = bg.initiate(pr) if st is None else bg.predict(st, pr)
+            st = bg.update(st, FieldReadings(np.array([k * dt]), z[None], smeas, KIND_V), hm)
+            fix = bg.to_fix(st)
+            if fix.available:
+                S = H @ P @ H.T + fix.cov_ne
+                K = P @ H.T @ np.linalg.inv(S)
+                x = x + K @ (local(hm, fix.lat, fix.lon) - x[:2])
+                P = (np.eye(4) - K @ H) @ P
+            if k >= 45:  # after the first few updates
+                errs.append(np.hypot(*(x[:2] - xt[:2])))
+    rms = float(np.sqrt(np.mean(np.square(errs))))
+    assert rms < 0.3, rms
+
+
+def test_bayes_grid_rejects_two_equal_peaks():
+    # map with two identical features inside the prior region: the posterior has two equal peaks
+    n_ax = np.arange(0.0, 40.0, 0.5)
+    e_ax = np.arange(0.0, 40.0, 0.5)
+    gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
+    bump = lambda c: 500.0 * np.exp(-((gn - c[0]) ** 2 + (ge - c[1]) ** 2) / (2 * 1.0**2))  # noqa: E731
+    vals = bump((20.0, 16.0)) + bump((20.0, 24.0))
+    from magnav_ins.maps.grid import GridMap
+
+    fmap = GridMap(n_ax, e_ax, vals, kind=KIND_TF, frame="local", altitude_m=0.0, origin=ORIGIN)
+    bg = BayesGridMatcher()
+    st = bg.initiate(nav_estimate(fmap, 0.0, np.array([20.0, 20.0]), np.zeros(2), np.eye(2) * 9.0))
+    st = bg.update(st, FieldReadings(np.array([0.0]), np.array([500.0]), 5.0, KIND_TF), fmap)
+    fix = bg.to_fix(st)
+    assert not fix.available and "ambiguous" in fix.reason
+
+
+# ---------------------------------------------------------------------------------------------- PMHT
+def _pmht_window(fmap, rng, T=30, offset=(40.0, -35.0)):
+    dt, sig = 10.0, 0.5
+    v = np.array([12.0, 9.0])
+    truth = np.array([1200.0, 1300.0]) + v * dt * np.arange(T)[:, None]
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, sig, T)
+    P = np.eye(2) * 30.0**2
+    return make_window(fmap, dt * np.arange(T), truth, z, sig, KIND_G, np.asarray(offset), P, v), truth
+
+
+def test_pmht_converges_in_a_few_iterations_on_gravity_field():
+    rng = np.random.default_rng(31)
+    fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    w, truth = _pmht_window(fmap, rng)
+    m = PMHTMatcher(batch=30, candidates=20, iterations=15, tolerance_m=0.01)
+    res = m.run(w, fmap)
+    assert not isinstance(res, str), res
+    assert res.iterations <= 8, res.iterations
+    fix = m.match(w, fmap)
+    assert fix.available, fix.reason
+    assert np.hypot(*(local(fmap, fix.lat, fix.lon) - truth[-1])) < 8.0  # INS was 53 m off
+    # retrodiction: a fix per scan, each close to its truth
+    fixes = PMHTMatcher(mode="retrodiction").match_all(w, fmap)
+    assert len(fixes) == 30 and all(f.available for f in fixes)
+    err = [np.hypot(*(local(fmap, f.lat, f.lon) - tr)) for f, tr in zip(fixes, truth, strict=True)]
+    assert np.median(err) < 8.0
+
+
+def test_pmht_flags_divergence_when_truth_outside_gate():
+    rng = np.random.default_rng(32)
+    fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    w, _ = _pmht_window(fmap, rng, offset=(600.0, 0.0))  # 20 sigma off: the true cells are not in the windows
+    fix = PMHTMatcher().match(w, fmap)
+    assert not fix.available and "diverged" in fix.reason, fix.reason
+
+
+# ---------------------------------------------------------------------------------------------- particle filters
+def test_gauss_markov_acceleration_is_stationary_with_sigma():
+    rng = np.random.default_rng(41)
+    fmap = random_field_map((50, 50), 2.0, 10.0, 10.0, rng, kind=KIND_TF, origin=ORIGIN)
+    pf = ParticleFilter(n_particles=4000)
+    st = pf.initiate(nav_estimate(fmap, 0.0, np.array([50.0, 50.0]), np.zeros(2), np.eye(2)), rng)
+    for k in range(1, 21):  # 20 s = 10 tau: the zero initial acceleration is forgotten
+        st = pf.predict(st, nav_estimate(fmap, float(k), np.array([50.0, 50.0]), np.zeros(2), np.eye(2)))
+    assert np.std(st.acc) == pytest.approx(5.0, rel=0.05)  # Shockley sec. 5.1: sigma = 5 m/s^2
+
+
+def test_road_penalisation_pulls_cloud_onto_road():
+    fr = LocalFrame(ORIGIN[0], ORIGIN[1])
+    e = np.arange(-200.0, 200.0, 1.0)
+    lat, lon = fr.to_latlon(np.zeros_like(e), e)  # an east-west road through the origin
+    road = TrackMap(lat, lon, 0.0, np.zeros_like(e), kind=KIND_TF)
+    rng = np.random.default_rng(42)
+    pf = ParticleFilter(n_particles=20000, road=road, dynamics="ins", ins_sigma=1e-6, resample_threshold=0.0)
+    fmap = random_field_map((50, 50), 2.0, 10.0, 10.0, rng, kind=KIND_TF, origin=ORIGIN)
+    prior = nav_estimate(fmap, 0.0, local(fmap, ORIGIN[0], ORIGIN[1]), np.zeros(2), np.eye(2))
+    st = pf.initiate(prior, rng)
+    st = pf.predict(st, nav_estimate(fmap, 1.0, local(fmap, ORIGIN[0], ORIGIN[1]), np.zeros(2), np.eye(2)))
+    w = np.exp(st.logw)
+    n_mean = w @ st.pos[:, 0]
+    n_sd = np.sqrt(w @ (st.pos[:, 0] - n_mean) ** 2)
+    # uniform 50 m disc x N(0, 6^2) across the road -> almost exactly N(0, 6^2) (the disc is 8 sigma wide)
+    assert abs(n_mean) < 0.3
+    assert n_sd == pytest.approx(6.0, rel=0.05)
+
+
+def test_particle_fix_mode_uses_inner_matcher():
+    rng = np.random.default_rng(43)
+    fmap = random_field_map((300, 300), 2.0, 25.0, 50.0, rng, kind=KIND_V, origin=ORIGIN)
+    pf = ParticleFilter(dynamics="ins", measurement="fix", init="gaussian")
+    truth = np.array([300.0, 300.0])
+    st = pf.initiate(nav_estimate(fmap, 0.0, truth + [5.0, -4.0], np.zeros(2), np.eye(2) * 36.0), rng)
+    lat, lon = latlon(fmap, truth[0], truth[1])
+    z = fmap.value(lat, lon)[0] + rng.normal(0, 5.0, 3)
+    st = pf.update(st, FieldReadings(np.array([0.0]), z[None], 5.0, KIND_V), fmap)
+    fix = pf.to_fix(st)
+    assert fix.available, fix.reason
+    d = local(fmap, fix.lat, fix.lon) - truth
+    assert np.hypot(*d) < 5.0  # the prior was 6.4 m off
+    assert d @ np.linalg.solve(fix.cov_ne, d) < 9.0
