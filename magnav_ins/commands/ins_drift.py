@@ -21,6 +21,9 @@ from ..core.atomic import atomic_path, write_text_atomic
 from ..core.errors import ConfigError
 from ..core.units import DEG_TO_RAD
 
+#: largest runs x samples per run (the Monte Carlo holds (R, N, 3) arrays; ~170 bytes per sample at peak)
+MAX_SAMPLES = 2e7
+
 DEFAULTS = {"duration": 1800.0, "runs": 20, "seed": 1, "rate_hz": 20.0, "output_dt": 10.0}
 
 
@@ -104,9 +107,9 @@ def run(args: argparse.Namespace) -> int:
         speed_mps=_num("speed", args.speed, lo=0.0, lo_open=False, hi=1000.0),
     )
     n_samples = cfg.duration_s * cfg.rate_hz * cfg.runs
-    if n_samples > 2e8:
+    if n_samples > MAX_SAMPLES:
         raise ConfigError(
-            f"--duration x --rate-hz x --runs = {n_samples:.3g} IMU samples; reduce them (limit 2e8, memory)"
+            f"--duration x --rate-hz x --runs = {n_samples:.3g} IMU samples; reduce them (limit {MAX_SAMPLES:.0e}: about 170 bytes of memory per sample)"
         )
     t0 = time.perf_counter()
     res = run_drift(grade, cfg)
