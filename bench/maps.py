@@ -82,7 +82,7 @@ def bench_interp(n_points: int) -> dict:
 
 
 def bench_osborne() -> dict:
-    from magnav_ins.maps.build import cross_lines, grid_survey, tie_line_misfit
+    from magnav_ins.maps.build import cross_lines, crossover_differences, grid_survey, tie_line_misfit
     from magnav_ins.maps.io import read_survey
 
     path = SHARED / "fatiando" / "osborne-magnetic.csv.xz"
@@ -102,6 +102,8 @@ def bench_osborne() -> dict:
         "osborne_full_grid_shape": list(full.shape),
         "tie_lines": ties,
     }
+    xo = crossover_differences(s, ties)
+    out["crossovers_flight_minus_tie"] = {"n": int(xo.size), "mean_nt": float(xo.mean()), "std_nt": float(xo.std())}
     for label, method, spacing in (
         ("bidirectional_50m", "bidirectional", 50.0),
         ("bidirectional_100m", "bidirectional", 100.0),
