@@ -140,9 +140,10 @@ class UkfFuser(InertialCore):
         v = nis(y, S)
         gate = self.gate if dim == 2 else ChiSquareGate(self.gate_probability, dim)
         S_ne = S[:2, :2]
+        v_ne = nis(y[:2], S_ne)  # reported: the north/east NIS (2 dof), comparable across fusers
         if not gate.accepts(v):
             self._replay(rest)
-            return rejected(fix, f"NIS {v:.1f} above gate {gate.threshold:.1f}", y[:2], S_ne, v)
+            return rejected(fix, f"NIS {v:.1f} above gate {gate.threshold:.1f} ({dim} dof)", y[:2], S_ne, v_ne)
         u._dim_z = dim
         u.update(z, R=Rz, hx=hx)
         dx = np.asarray(u.x, float)
@@ -157,4 +158,4 @@ class UkfFuser(InertialCore):
         self._checkpoints.pop()
         self._checkpoint()
         self._replay(rest)
-        return Innovation(float(fix.t), y[:2], S_ne, v, True, "", fix.source, {"nis_dof": float(dim)})
+        return Innovation(float(fix.t), y[:2], S_ne, v_ne, True, "", fix.source, {"nis_full": v, "nis_dof": float(dim)})
