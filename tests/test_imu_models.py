@@ -105,3 +105,16 @@ def test_reproducible_from_the_generator():
     assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
     assert not np.allclose(a[0], c[0])
     assert a[0].shape == (3, len(t), 3)
+
+
+def test_gauss_markov_on_irregular_times_keeps_its_statistics():
+    g = get_grade("tactical")
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(5.0, 40.0, 200))  # irregular sampling over ~1.7 h
+    z = np.zeros((len(t), 3))
+    _, _, tr = corrupt_arrays(t, z, z, g, rng, runs=2000)
+    b = tr.gyro_bias[..., 0]
+    assert np.std(b[:, -1]) / g.gyro_bias_sigma[0] == pytest.approx(1.0, abs=0.05)
+    lag = t[-1] - t[0]
+    rho = np.mean(b[:, 0] * b[:, -1]) / np.mean(b[:, 0] ** 2)
+    assert rho == pytest.approx(math.exp(-lag / g.gyro_bias_tau), abs=0.05)
