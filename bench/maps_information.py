@@ -8,7 +8,8 @@
    sigma = 1 mG (Storms Table 4.1), next to his reported < 0.3 m RMS.
 3. FFT upward continuation of a point-dipole anomaly 0 -> 200 m against the analytic field; time per 1024^2 grid;
    side by side with harmonica.upward_continuation (when installed).
-4. Speed of the feature-variability raster on 2000 x 2000 nodes.
+4. Self-building: readings at known positions accumulated per node; map error against sigma / sqrt(count).
+5. Speed of the feature-variability raster on 2000 x 2000 nodes.
 
 Run: ``python bench/maps_information.py [--json]`` (prints one JSON line with --json).
 """
@@ -124,6 +125,32 @@ def continuation() -> dict[str, float]:
     return out
 
 
+def self_building() -> dict[str, float]:
+    """Readings at known positions (sigma = 1 mG, 3-axis) accumulated on the hallway grid, ~12 per node."""
+    from magnav_ins.maps.selfbuild import MapAccumulator
+
+    rng = np.random.default_rng(3)
+    hall = syn.hallway_map(rng)
+    inside = np.argwhere(np.isfinite(hall.values[..., 0]))
+    pick = inside[rng.integers(0, len(inside), 12 * len(inside))]
+    north, east = hall.axes
+    lat, lon = hall.from_local(north[pick[:, 0]], east[pick[:, 1]])
+    sigma = 1.0 * NT_PER_MILLIGAUSS
+    z = hall.values[pick[:, 0], pick[:, 1]] + sigma * rng.standard_normal((len(pick), 3))
+    acc = MapAccumulator.like(hall)
+    tic = time.perf_counter()
+    acc.add(lat, lon, z)
+    wall = time.perf_counter() - tic
+    built = acc.result()
+    err = built.mean.values - hall.values
+    out: dict[str, float] = {"readings": float(len(pick)), "add_wall_s": wall}
+    for n in (8, 12, 16):
+        cells = built.count == n
+        out[f"rms_error_count{n}_over_sigma"] = float(np.sqrt(np.mean(err[cells] ** 2)) / sigma)
+        out[f"expected_count{n}_over_sigma"] = 1.0 / np.sqrt(n)
+    return out
+
+
 def variability_speed() -> dict[str, float]:
     rng = np.random.default_rng(1)
     v = syn.gaussian_random_field((2000, 2000), 10.0, 100.0, 5.0, rng)
@@ -141,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         "osborne_magnetic_sigma_1nt": osborne(),
         "storms_hallway": hallway(),
         "upward_continuation_dipole": continuation(),
+        "self_building_hallway": self_building(),
         "feature_variability_raster": variability_speed(),
     }
     if a.json:
