@@ -21,8 +21,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from ..core.atomic import atomic_path  # noqa: E402
-from ..core.frames import meters_to_latlon  # noqa: E402
-from ..core.units import DEG_TO_RAD, RAD_TO_DEG  # noqa: E402
+from ..core.frames import latlon_to_meters  # noqa: E402
+from ..core.units import DEG_TO_RAD  # noqa: E402
 from .scenario import FREE_INERTIAL  # noqa: E402
 
 _DPI = 110
@@ -114,80 +114,80 @@ def plot_free_inertial(ds: Any, path: str | Path) -> Path:
     return _save(fig, Path(path))
 
 
-def _offset_deg(
-    lat_deg: np.ndarray, lon_deg: np.ndarray, dn: np.ndarray, de: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    dlat, dlon = meters_to_latlon(dn, de, lat_deg * DEG_TO_RAD)
-    return lat_deg + dlat * RAD_TO_DEG, lon_deg + dlon * RAD_TO_DEG
-
-
 def plot_track(ds: Any, path: str | Path, fmap: Any = None, run: int = 0, ellipse_every: int = 1) -> Path:
-    """Truth and estimated tracks (lon/lat deg) of run ``run`` over the map (when ``fmap`` is given: a
-    :class:`~magnav_ins.core.protocols.FieldMap`), fixes as dots with their 3-sigma ellipses."""
-    lat = ds["truth_lat_deg"].values
-    lon = ds["truth_lon_deg"].values
+    """Truth and estimated tracks of run ``run`` over the map (when ``fmap``, a
+    :class:`~magnav_ins.core.protocols.FieldMap`, is given), fixes as dots with their 3-sigma ellipses.
+
+    Axes are east/north (m, or km for tracks longer than 20 km) from the truth's first point in an equirectangular
+    projection about it (distortion below 1 % within a few hundred km of the start)."""
+    lat0 = float(ds["truth_lat_deg"].values[0]) * DEG_TO_RAD
+    lon0 = float(ds["truth_lon_deg"].values[0]) * DEG_TO_RAD
+    lat = ds["truth_lat_deg"].values * DEG_TO_RAD
+    lon = ds["truth_lon_deg"].values * DEG_TO_RAD
+    t = ds["time"].values
+    m_n, m_e = latlon_to_meters(1.0, 1.0, lat0)  # metres per rad of latitude / longitude at the start
+
+    def ne_of(la: np.ndarray, lo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (la - lat0) * m_n, (lo - lon0) * m_e
+
+    tn, te = ne_of(lat, lon)
+    extent = max(np.ptp(tn), np.ptp(te), 1.0)
+    scale, unit = (1e-3, "km") if extent > 20e3 else (1.0, "m")
     names = _names(ds)
     fig, ax = plt.subplots(figsize=(7.5, 6.5))
-    pad_lat = max(0.05 * np.ptp(lat), 1e-4)
-    pad_lon = max(0.05 * np.ptp(lon), 1e-4)
     if fmap is not None:
-        glat = np.linspace(lat.min() - pad_lat, lat.max() + pad_lat, 200)
-        glon = np.linspace(lon.min() - pad_lon, lon.max() + pad_lon, 200)
-        LAT, LON = np.meshgrid(glat, glon, indexing="ij")
-        val = np.asarray(fmap.value(LAT.ravel() * DEG_TO_RAD, LON.ravel() * DEG_TO_RAD), float)
+        pad = 0.08 * extent + 10.0
+        gn = np.linspace(tn.min() - pad, tn.max() + pad, 220)
+        ge = np.linspace(te.min() - pad, te.max() + pad, 220)
+        GN, GE = np.meshgrid(gn, ge, indexing="ij")
+        val = np.asarray(fmap.value(lat0 + GN.ravel() / m_n, lon0 + GE.ravel() / m_e), float)
         if val.ndim == 2:  # vector map: show the magnitude
             val = np.linalg.norm(val, axis=1)
-        val = val.reshape(LAT.shape)
+        val = val.reshape(GN.shape)
         if np.isfinite(val).any():
             lo, hi = np.nanpercentile(val, [2, 98])
-            im = ax.pcolormesh(glon, glat, val, cmap="RdBu_r", vmin=lo, vmax=hi, shading="auto", alpha=0.8)
+            im = ax.pcolormesh(ge * scale, gn * scale, val, cmap="RdBu_r", vmin=lo, vmax=hi, shading="auto", alpha=0.8)
             kind = getattr(fmap, "kind", None)
-            unit = getattr(kind, "unit", "")
-            fig.colorbar(im, ax=ax, shrink=0.8, label=f"map ({unit})")
-    ax.plot(lon, lat, "k-", lw=2.0, label="truth")
+            label = "map |B|" if getattr(kind, "components", 1) == 3 else "map"
+            fig.colorbar(im, ax=ax, shrink=0.8, label=f"{label} ({getattr(kind, 'unit', '')})")
+    ax.plot(te * scale, tn * scale, "k-", lw=2.0, label="truth")
     for j, name in enumerate(names):
         dn = ds["err_north_m"].values[run, j].astype(float)
         de = ds["err_east_m"].values[run, j].astype(float)
-        elat, elon = _offset_deg(lat, lon, dn, de)
-        (line,) = ax.plot(elon, elat, lw=1.2, ls=":" if name == FREE_INERTIAL else "-", label=name)
+        (line,) = ax.plot(
+            (te + de) * scale, (tn + dn) * scale, lw=1.2, ls=":" if name == FREE_INERTIAL else "-", label=name
+        )
         avail = ds["fix_available"].values[run, j].astype(bool)
         if not avail.any():
             continue
         ft = ds["fix_t_s"].values[run, j][avail]
-        flat_t = np.interp(ft, ds["time"].values, lat)
-        flon_t = np.interp(ft, ds["time"].values, lon)
-        fdn = ds["fix_err_north_m"].values[run, j][avail].astype(float)
-        fde = ds["fix_err_east_m"].values[run, j][avail].astype(float)
-        flat, flon = _offset_deg(flat_t, flon_t, fdn, fde)
-        ax.plot(flon, flat, ".", ms=4, color=line.get_color(), label=f"{name} fixes")
+        fn = np.interp(ft, t, tn) + ds["fix_err_north_m"].values[run, j][avail].astype(float)
+        fe = np.interp(ft, t, te) + ds["fix_err_east_m"].values[run, j][avail].astype(float)
+        ax.plot(fe * scale, fn * scale, ".", ms=4, color=line.get_color(), label=f"{name} fixes")
         sn = ds["fix_sigma_north_m"].values[run, j][avail].astype(float)
         se = ds["fix_sigma_east_m"].values[run, j][avail].astype(float)
         rho = np.nan_to_num(ds["fix_corr_ne"].values[run, j][avail].astype(float))
-        for k in range(0, len(flat), max(1, ellipse_every)):
+        th = np.linspace(0, 2 * np.pi, 48)
+        circle = np.vstack([np.cos(th), np.sin(th)])
+        for k in range(0, len(fn), max(1, ellipse_every)):
             if not (np.isfinite(sn[k]) and np.isfinite(se[k])):
                 continue
             P = np.array([[sn[k] ** 2, rho[k] * sn[k] * se[k]], [rho[k] * sn[k] * se[k], se[k] ** 2]])
             w, V = np.linalg.eigh(P)
-            # axes lengths (3-sigma) in metres -> degrees at the fix latitude
-            dlat1, dlon1 = meters_to_latlon(1.0, 1.0, flat[k] * DEG_TO_RAD)
-            m_per_deg_n, m_per_deg_e = DEG_TO_RAD / dlat1, DEG_TO_RAD / dlon1
-            # transform the ellipse to (east, north) degrees: sample its outline
-            th = np.linspace(0, 2 * np.pi, 48)
-            pts = V @ (3.0 * np.sqrt(np.maximum(w, 0))[:, None] * np.vstack([np.cos(th), np.sin(th)]))
-            ax.plot(flon[k] + pts[1] / m_per_deg_e, flat[k] + pts[0] / m_per_deg_n, color=line.get_color(), lw=0.5)
-    ax.set_xlabel("longitude (deg)")
-    ax.set_ylabel("latitude (deg)")
-    # equal metres per degree on both axes, and a box no flatter than 1:3 around the data
-    coslat = max(np.cos(np.mean(lat) * DEG_TO_RAD), 1e-3)
+            pts = V @ (3.0 * np.sqrt(np.maximum(w, 0.0))[:, None] * circle)  # rows: north, east (m)
+            ax.plot((fe[k] + pts[1]) * scale, (fn[k] + pts[0]) * scale, color=line.get_color(), lw=0.5)
+    ax.set_xlabel(f"east ({unit}) from the start")
+    ax.set_ylabel(f"north ({unit}) from the start")
+    # equal scales, and a box no flatter than 1:3 around the data
     (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
-    wx, wy = (x1 - x0) * coslat, y1 - y0
+    wx, wy = x1 - x0, y1 - y0
     if wy < wx / 3:
         c = 0.5 * (y0 + y1)
         ax.set_ylim(c - wx / 6, c + wx / 6)
     elif wx < wy / 3:
         c = 0.5 * (x0 + x1)
-        ax.set_xlim(c - wy / 6 / coslat, c + wy / 6 / coslat)
-    ax.set_aspect(1.0 / coslat)
+        ax.set_xlim(c - wy / 6, c + wy / 6)
+    ax.set_aspect("equal")
     ax.set_title(f"Run {int(ds['run'].values[run])}: tracks, fixes and 3σ ellipses")
     ax.legend(fontsize=7, loc="best")
     ax.grid(True, alpha=0.3)
