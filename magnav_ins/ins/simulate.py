@@ -408,6 +408,26 @@ def _gravitation_e(lat: FloatArray, lon: FloatArray, h: FloatArray) -> FloatArra
     return g_e + np.cross(w, np.cross(w, r_e))
 
 
+_CHUNK = 50_000
+
+
+def _interval_means(
+    t0: FloatArray, dt: FloatArray, pos: CubicHermiteSpline, acc: object, rot: RotationSpline
+) -> tuple[FloatArray, FloatArray]:
+    """Means of omega_ib_b and f_ib_b over the intervals (t0, t0 + dt], 4-point Gauss-Legendre."""
+    n = len(dt)
+    tq = (t0[:, None] + 0.5 * dt[:, None] * (_GL_X[None, :] + 1.0)).ravel()  # 4 nodes per interval
+    wq = np.tile(0.5 * _GL_W, n)[:, None]  # weights of the mean over each interval
+    omega_b = rot(tq, 1)
+    # gravitation at the interpolated inertial position
+    C_ie = _C_ie(tq)
+    r_eq = np.einsum("nji,nj->ni", C_ie, pos(tq))
+    latq, lonq, hq = ecef_to_geodetic(r_eq)
+    gam_i = np.einsum("nij,nj->ni", C_ie, _gravitation_e(latq, lonq, hq))
+    f_b = np.einsum("nji,nj->ni", rot(tq).as_matrix(), acc(tq) - gam_i)  # type: ignore[operator]
+    return (omega_b * wq).reshape(n, 4, 3).sum(axis=1), (f_b * wq).reshape(n, 4, 3).sum(axis=1)
+
+
 def ideal_imu(traj: NavTrajectory) -> ImuBatch:
     """Error-free rate-type IMU samples for ``traj`` (see the module docstring).
 
@@ -433,19 +453,11 @@ def ideal_imu(traj: NavTrajectory) -> ImuBatch:
     rot = RotationSpline(t, Rotation.from_matrix(C_ib))
 
     dt = np.diff(t)
-    tq = (t[:-1, None] + 0.5 * dt[:, None] * (_GL_X[None, :] + 1.0)).ravel()  # (N-1)*4 nodes
-    wq = np.tile(0.5 * _GL_W, len(dt))  # weights for the mean over each interval
-    omega_b = rot(tq, 1)
-    # gravitation at the interpolated inertial position
-    r_iq = pos(tq)
-    C_ei = np.swapaxes(_C_ie(tq), -1, -2)
-    r_eq = np.einsum("nij,nj->ni", C_ei, r_iq)
-    latq, lonq, hq = ecef_to_geodetic(r_eq)
-    gam_i = np.einsum("nij,nj->ni", _C_ie(tq), _gravitation_e(latq, lonq, hq))
-    C_bi = np.swapaxes(rot(tq).as_matrix(), -1, -2)
-    f_b = np.einsum("nij,nj->ni", C_bi, acc(tq) - gam_i)
-    gyro = (omega_b * wq[:, None]).reshape(len(dt), 4, 3).sum(axis=1)
-    accel = (f_b * wq[:, None]).reshape(len(dt), 4, 3).sum(axis=1)
+    gyro = np.empty((len(dt), 3))
+    accel = np.empty((len(dt), 3))
+    for i0 in range(0, len(dt), _CHUNK):  # bounded memory: ~2 kB per interval and chunk
+        i1 = min(i0 + _CHUNK, len(dt))
+        gyro[i0:i1], accel[i0:i1] = _interval_means(t[i0:i1], dt[i0:i1], pos, acc, rot)
     gyro = np.vstack([gyro[:1], gyro])
     accel = np.vstack([accel[:1], accel])
     return ImuBatch(t.copy(), gyro, accel)
