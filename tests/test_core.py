@@ -104,3 +104,20 @@ def test_value_types_validate():
     np.testing.assert_allclose(nav.q_nb, [0, 0, 0, 1])
     nf = Fix.no_fix(5.0, "off the map", "ml")
     assert not nf.available and nf.reason == "off the map" and np.isnan(nf.lat)
+
+
+def test_atomic_write_mode_and_no_leftovers(tmp_path):
+    import os
+
+    from magnav_ins.core.atomic import atomic_path, write_text_atomic
+
+    out = tmp_path / "a.txt"
+    write_text_atomic(out, "x")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.read_text() == "x" and (out.stat().st_mode & 0o777) == (0o666 & ~umask)
+    with pytest.raises(RuntimeError):
+        with atomic_path(tmp_path / "b.txt") as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("writer failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
