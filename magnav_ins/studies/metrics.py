@@ -20,6 +20,10 @@ Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
   same run over the same last quarter (the aiding has lost at least half of its benefit). The free-inertial
   baseline itself is tested against itself, so it "diverges" whenever its error doubles between the quarters.
   ``divergence_rate`` is the fraction of runs that diverge.
+
+Besides DESIGN.md's keys each entry holds ``fix_error_bins`` (the four bins above), ``fix_within_3m_fraction``,
+``fix_attempts``, ``fixes_issued`` and ``non_finite_fraction`` (share of error samples that were not finite: an
+estimator that blew up). Undefined values (no fixes, no covariance) are ``null``.
 """
 
 from __future__ import annotations
