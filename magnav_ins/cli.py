@@ -15,7 +15,7 @@ from . import __version__
 from .core.errors import MagnavError
 
 #: command-group modules under ``magnav_ins.commands``, in the order ``--help`` lists them
-COMMAND_MODULES: tuple[str, ...] = ("demo", "ins", "calibrate", "run", "maps", "bridge")
+COMMAND_MODULES: tuple[str, ...] = ("demo", "ins", "calibrate", "run", "maps", "bridge", "replay")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -16,7 +16,7 @@ import math
 import os
 import select
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -745,3 +745,61 @@ def iter_tlog(path: str | os.PathLike[str]) -> Iterator[object]:
                 yield out
     finally:
         conn.close()
+
+
+def write_tlog(
+    path: str | os.PathLike[str],
+    messages: Iterable[ImuMessage | AttitudeMessage | PositionMessage],
+    *,
+    ardupilot_mag_scale: bool = True,
+    t_unix0: float = 1.6e9,
+) -> None:
+    """Write SI messages as a MAVLink 2 telemetry log (tests and replays of simulated flights).
+
+    Each message is encoded as the autopilot would send it (ImuMessage -> HIGHRES_IMU, with the magnetometer in
+    ArduPilot's milligauss x 1000 when ``ardupilot_mag_scale``; AttitudeMessage -> ATTITUDE; PositionMessage ->
+    GLOBAL_POSITION_INT with ``h_msl``) and stored as pymavlink's tlog record: the receive time as an 8-byte
+    big-endian count of microseconds since the Unix epoch (``t_unix0 + t``), then the frame. Written atomically.
+    """
+    import struct
+
+    from ..core.atomic import atomic_path
+
+    mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    out = bytearray()
+    for m in messages:
+        if isinstance(m, ImuMessage):
+            if m.mag_b_nt is None:
+                mag, fields = (0.0, 0.0, 0.0), 0b111111
+            else:
+                scale = (1e6 if ardupilot_mag_scale else 1.0) / NT_PER_GAUSS
+                mag, fields = tuple(float(x) * scale for x in m.mag_b_nt), 0b111111111
+            msg = mav.highres_imu_encode(
+                int(round(m.t * 1e6)),
+                *(float(x) for x in m.accel_b),
+                *(float(x) for x in m.gyro_b),
+                *mag,
+                1013.25,
+                0.0,
+                0.0,
+                20.0,
+                fields,
+                0,
+            )
+        elif isinstance(m, AttitudeMessage):
+            msg = mav.attitude_encode(int(round(m.t * 1e3)) & 0xFFFFFFFF, m.roll, m.pitch, m.yaw, 0.0, 0.0, 0.0)
+        elif isinstance(m, PositionMessage):
+            msg = mav.global_position_int_encode(
+                int(round(m.t * 1e3)) & 0xFFFFFFFF,
+                int(round(math.degrees(m.lat) * DEG_E7)),
+                int(round(math.degrees(m.lon) * DEG_E7)),
+                int(round(m.h_msl * 1000)),
+                0,
+                *(int(round(v * 100)) for v in m.v_n),
+                65535,
+            )
+        else:
+            raise InputError(f"write_tlog: cannot encode {type(m).__name__}")
+        out += struct.pack(">Q", int(round((t_unix0 + m.t) * 1e6))) + msg.pack(mav)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(bytes(out))

@@ -1,0 +1,610 @@
+"""Replay a recorded flight through the online pipeline the MAVLink bridge runs (``magnav-ins replay``).
+
+Three parts:
+
+* :func:`make_online_pipeline` - THE factory of the online pipeline (INS + map matcher + fuser,
+  :class:`magnav_ins.pipeline.Pipeline`), shared by the bridge (:mod:`.bridge`) and the replay, so that a replay
+  reproduces what the companion computer would have computed.
+* :func:`read_log` - a recording as a :class:`LogRecording` in SI and our frames: PX4 ULog (through
+  :mod:`.ulog`), MAVLink telemetry log (through :func:`.link.iter_tlog`) or a CSV. Bad input (not a log, a missing
+  topic, NaN samples, time going backwards) raises :class:`~magnav_ins.core.errors.InputError` naming the file, the
+  topic/message and the row.
+* :func:`replay` - feed the recording sample by sample to the pipeline exactly as the bridge does (IMU samples to
+  ``push_imu``; magnetometer vectors, decimated to ``reading_interval_s``, through
+  :class:`.bridge.ScalarAnomalyModel` to ``push_reading``) and collect the fused trajectory, the fixes and
+  innovations; when the log holds GNSS, the horizontal error against it.
+
+Frames and units: IMU body FRD, gyro rad/s (mean rate over the interval ending at ``t``), specific force m/s^2;
+magnetometer nT body; positions rad and ellipsoidal metres; times s on the log's clock. PX4 quaternions are
+scalar-first (w, x, y, z) and are converted to our scalar-last here and nowhere else. GNSS heights: ULog
+``alt_ellipsoid`` when present, else MSL + ``geoid_height_m`` (as the bridge).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..core.errors import ConfigError, InputError
+from ..core.frames import horizontal_error_m, q_nb_from_euler
+from ..core.types import Fix, ImuBatch, Innovation, NavEstimate, NavState
+from ..core.units import NT_PER_GAUSS
+
+FloatArray = NDArray[np.float64]
+
+ULOG_MAGIC = b"ULog"
+#: CSV recording columns (mag_* optional): t s, gyro rad/s, accel m/s^2 specific force (body FRD), mag nT (body)
+CSV_IMU_COLUMNS = ("t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
+CSV_MAG_COLUMNS = ("mag_x", "mag_y", "mag_z")
+#: trajectory CSV written by ``magnav-ins replay``
+TRAJ_COLUMNS = (
+    "t",
+    "lat_deg",
+    "lon_deg",
+    "h_m",
+    "vn",
+    "ve",
+    "vd",
+    "roll_deg",
+    "pitch_deg",
+    "yaw_deg",
+    "sigma_n_m",
+    "sigma_e_m",
+)
+_TOL = 1e-9
+DEG_E7 = 1e7
+MM_TO_M = 1e-3
+US_TO_S = 1e-6
+#: seconds of specific force averaged to level the INS when the log has no attitude (the vehicle must be still
+#: or in steady flight over this span)
+LEVELLING_S = 1.0
+
+
+# ------------------------------------------------------------------------------------------------ the factory
+def make_online_pipeline(
+    nav0: NavState,
+    sigma_pos_m: float,
+    fmap: Any,
+    *,
+    grade: str = "tactical",
+    matcher: str | dict[str, Any] = "mlr",
+    fusion: str = "ukf",
+    reading_sigma: float = 5.0,
+    window: int = 30,
+    match_every: int = 10,
+    velocity_sigma_mps: float = 0.2,
+    attitude_sigma_rad: tuple[float, float, float] = (0.005, 0.005, 0.02),
+    altitude_hold: bool = True,
+    rng: np.random.Generator | None = None,
+):
+    """The online pipeline of the bridge and the replay, starting from ``nav0``.
+
+    ``sigma_pos_m``: 1-sigma of the initial north/east position (m; the down sigma is the same); ``fmap``: the map
+    (its ``kind`` is the readings' kind); ``grade``: IMU grade name (:func:`magnav_ins.ins.imu_models.get_grade`) for
+    the filter's noise and initial bias covariance; ``matcher``: a registry kind (``"mlr"``) or a full config dict
+    (:func:`magnav_ins.aiding.matchers.registry.build_matcher`), ``"none"`` for no matching; ``fusion``: ``ukf`` |
+    ``graph`` | ``free_inertial`` (:func:`magnav_ins.aiding.fusion.make_fuser`); ``reading_sigma``: 1-sigma of a
+    reading in the map's unit (sensor noise and uncompensated vehicle field); ``window`` / ``match_every``: readings
+    per batch-matcher window and between match attempts (:class:`~magnav_ins.pipeline.Pipeline`);
+    ``velocity_sigma_mps`` (m/s) and ``attitude_sigma_rad`` (roll, pitch, yaw, rad): initial 1-sigmas;
+    ``altitude_hold``: clamp the INS height to ``nav0.h`` (no barometer in the loop yet; the free vertical channel
+    diverges in minutes). Returns a :class:`~magnav_ins.pipeline.Pipeline` (``push_imu``, ``push_reading``,
+    ``estimate``).
+    """
+    from ..aiding.fusion import ImuNoise, make_fuser
+    from ..aiding.matchers.registry import build_matcher
+    from ..ins.error_model import initial_covariance
+    from ..ins.imu_models import get_grade
+    from ..pipeline import Pipeline
+
+    if not (math.isfinite(sigma_pos_m) and sigma_pos_m > 0):
+        raise ConfigError(f"initial position sigma must be a positive number of metres, got {sigma_pos_m!r}")
+    g = get_grade(grade)
+    P0 = initial_covariance(g, sigma_pos_m, velocity_sigma_mps, np.asarray(attitude_sigma_rad, float))
+    if altitude_hold:
+        P0[2, :] = P0[:, 2] = 0.0  # height clamped: no vertical position / velocity error
+        P0[5, :] = P0[:, 5] = 0.0
+    init = NavEstimate(nav0, P0)
+    options: dict[str, Any] = {}
+    if fusion in ("ukf", "free_inertial") and altitude_hold:
+        options["altitude_hold"] = float(nav0.h)
+    fuser = make_fuser(fusion, init, ImuNoise.from_grade(g), **options)
+    m = None
+    if fusion != "free_inertial" and matcher not in (None, "none"):
+        m = build_matcher({"kind": matcher} if isinstance(matcher, str) else dict(matcher))
+    kind = getattr(fmap, "kind", None)
+    return Pipeline(
+        fuser,
+        m,
+        fmap if m is not None else None,
+        window=window,
+        match_every=match_every,
+        reading_sigma=float(reading_sigma),
+        reading_kind=kind,
+        height_aid=None,
+        rng=rng if rng is not None else np.random.default_rng(0),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ recordings
+@dataclass(frozen=True)
+class GnssTrack:
+    """GNSS positions from the log: ``t`` s, ``lat``/``lon`` rad, ``h`` m ellipsoidal, ``v_n`` (N,3) NED m/s,
+    ``t_utc`` Unix seconds of the first fix (nan if unknown)."""
+
+    t: FloatArray
+    lat: FloatArray
+    lon: FloatArray
+    h: FloatArray
+    v_n: FloatArray
+    t_utc: float = math.nan
+
+
+@dataclass(frozen=True)
+class AttitudeTrack:
+    """Autopilot attitude: ``t`` s, ``q_nb`` (N,4) scalar-last body FRD -> NED."""
+
+    t: FloatArray
+    q_nb: FloatArray
+
+
+@dataclass(frozen=True)
+class LogRecording:
+    """A recording in SI: ``imu`` (body FRD), magnetometer ``mag_t`` (M,) s and ``mag_b_nt`` (M,3) nT body (empty
+    when the log has none), optional ``gnss`` and ``attitude``; ``fmt`` "ulog" | "tlog" | "csv"; ``sources`` says
+    which topic or message each part came from (for messages)."""
+
+    path: Path
+    fmt: str
+    imu: ImuBatch
+    mag_t: FloatArray
+    mag_b_nt: FloatArray
+    gnss: GnssTrack | None = None
+    attitude: AttitudeTrack | None = None
+    sources: dict[str, str] = field(default_factory=dict)
+
+
+def _check_series(path: Path, what: str, t: FloatArray, values: dict[str, FloatArray], *, strict: bool) -> None:
+    """Finite values and times that never go back (``strict``: strictly increasing), else :class:`InputError`
+    naming the file, the topic/message and the 1-based row."""
+    if len(t) == 0:
+        return
+    for name, v in {"t": t, **values}.items():
+        bad = ~np.isfinite(np.asarray(v, float).reshape(len(t), -1)).all(axis=1)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(f"{path}: {what} row {k + 1} (t={t[k]!r} s): non-finite {name} {np.asarray(v)[k]!r}")
+    d = np.diff(t)
+    bad = d <= 0 if strict else d < 0
+    if bad.any():
+        k = int(np.argmax(bad)) + 1
+        raise InputError(
+            f"{path}: {what} row {k + 1}: time goes backwards or repeats: t={t[k]!r} s after t={t[k - 1]!r} s"
+        )
+
+
+def _detect(path: Path) -> str:
+    if not path.is_file():
+        raise InputError(f"{path}: no such log file")
+    with path.open("rb") as fh:
+        head = fh.read(16)
+    if head.startswith(ULOG_MAGIC):
+        return "ulog"
+    suffix = path.suffix.lower()
+    if suffix == ".tlog" or (len(head) > 8 and head[8] in (0xFD, 0xFE)):
+        return "tlog"
+    if suffix in (".csv", ".txt") or head[:2] in (b"t,", b"# "):
+        return "csv"
+    raise InputError(
+        f"{path}: not a recording: expected a PX4 ULog (.ulg), a MAVLink telemetry log (.tlog) or a CSV with columns "
+        f"{','.join(CSV_IMU_COLUMNS)}[,{','.join(CSV_MAG_COLUMNS)}]"
+    )
+
+
+def read_log(path: str | Path, *, geoid_height_m: float = 0.0) -> LogRecording:
+    """Read a ULog, tlog or CSV recording (format detected from the file's first bytes and its suffix)."""
+    p = Path(path)
+    fmt = _detect(p)
+    if fmt == "ulog":
+        return _read_ulog(p)
+    if fmt == "tlog":
+        return _read_tlog(p, geoid_height_m)
+    return _read_csv(p)
+
+
+def _vec(d: dict[str, FloatArray], name: str) -> FloatArray:
+    return np.column_stack([d[f"{name}[{i}]"] for i in range(3)])
+
+
+def _read_ulog(p: Path) -> LogRecording:
+    from .ulog import read_ulog_topic
+
+    sc = read_ulog_topic(p, "sensor_combined")
+    gyro, accel = _vec(sc, "gyro_rad"), _vec(sc, "accelerometer_m_s2")
+    _check_series(p, "topic 'sensor_combined'", sc["t"], {"gyro_rad": gyro, "accelerometer_m_s2": accel}, strict=True)
+    imu = ImuBatch(sc["t"], gyro, accel)
+    sources = {"imu": "sensor_combined"}
+    mag_t, mag = np.zeros(0), np.zeros((0, 3))
+    try:
+        vm = read_ulog_topic(p, "vehicle_magnetometer", [f"magnetometer_ga[{i}]" for i in range(3)])
+        mag_t, mag = vm["t"], _vec(vm, "magnetometer_ga") * NT_PER_GAUSS
+        sources["mag"] = "vehicle_magnetometer"
+    except InputError:
+        if "magnetometer_ga[0]" in sc:  # old logs: the magnetometer rides in sensor_combined
+            mag_t, mag = sc["t"], _vec(sc, "magnetometer_ga") * NT_PER_GAUSS
+            sources["mag"] = "sensor_combined"
+    if len(mag_t):
+        _check_series(p, f"topic '{sources['mag']}'", mag_t, {"magnetometer_ga": mag}, strict=False)
+    gnss = None
+    try:
+        g = read_ulog_topic(p, "vehicle_gps_position")
+    except InputError:
+        g = None
+    if g is not None and len(g["t"]):
+        ok = g["fix_type"] >= 3 if "fix_type" in g else np.ones(len(g["t"]), bool)
+        if ok.any():
+            h = g["alt_ellipsoid"] if "alt_ellipsoid" in g else g["alt"]
+            v = np.column_stack([g.get(k, np.zeros(len(g["t"]))) for k in ("vel_n_m_s", "vel_e_m_s", "vel_d_m_s")])
+            lat, lon = np.radians(g["lat"] / DEG_E7), np.radians(g["lon"] / DEG_E7)
+            _check_series(p, "topic 'vehicle_gps_position'", g["t"][ok], {"lat": lat[ok], "lon": lon[ok]}, strict=False)
+            utc = g["time_utc_usec"][ok] if "time_utc_usec" in g else np.zeros(1)
+            t_utc = float(utc[0] * US_TO_S) if utc[0] > 0 else math.nan
+            gnss = GnssTrack(g["t"][ok], lat[ok], lon[ok], h[ok] * MM_TO_M, v[ok], t_utc)
+            sources["gnss"] = "vehicle_gps_position"
+    attitude = None
+    try:
+        a = read_ulog_topic(p, "vehicle_attitude", [f"q[{i}]" for i in range(4)])
+    except InputError:
+        a = None
+    if a is not None and len(a["t"]):
+        q_wxyz = np.column_stack([a[f"q[{i}]"] for i in range(4)])
+        _check_series(p, "topic 'vehicle_attitude'", a["t"], {"q": q_wxyz}, strict=False)
+        q_nb = q_wxyz[:, [1, 2, 3, 0]]  # PX4 scalar-first -> ours scalar-last
+        attitude = AttitudeTrack(a["t"], q_nb / np.linalg.norm(q_nb, axis=1, keepdims=True))
+        sources["attitude"] = "vehicle_attitude"
+    return LogRecording(p, "ulog", imu, mag_t, mag, gnss, attitude, sources)
+
+
+def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
+    from .link import AttitudeMessage, ImuMessage, PositionMessage, iter_tlog
+
+    imu_rows: list[tuple] = []
+    mag_rows: list[tuple] = []
+    att_rows: list[tuple] = []
+    pos_rows: list[tuple] = []
+    imu_source = ""
+    for m in iter_tlog(p):
+        if isinstance(m, ImuMessage):
+            if imu_source and m.source != imu_source:
+                continue  # one IMU stream: the first kind seen (HIGHRES_IMU normally)
+            imu_source = m.source
+            imu_rows.append((m.t, *m.gyro_b, *m.accel_b))
+            if m.mag_b_nt is not None:
+                mag_rows.append((m.t, *m.mag_b_nt))
+        elif isinstance(m, AttitudeMessage):
+            att_rows.append((m.t, m.roll, m.pitch, m.yaw))
+        elif isinstance(m, PositionMessage):
+            pos_rows.append((m.t, m.lat, m.lon, m.h_msl + geoid_height_m, *m.v_n))
+    if not imu_rows:
+        raise InputError(f"{p}: no IMU messages (HIGHRES_IMU, SCALED_IMU or RAW_IMU) in the telemetry log")
+    im = np.asarray(imu_rows, float)
+    what = f"message {imu_source}"
+    _check_series(p, what, im[:, 0], {"gyro": im[:, 1:4], "accel": im[:, 4:7]}, strict=True)
+    imu = ImuBatch(im[:, 0], im[:, 1:4], im[:, 4:7])
+    mg = np.asarray(mag_rows, float).reshape(-1, 4)
+    sources = {"imu": imu_source}
+    if len(mg):
+        sources["mag"] = imu_source
+    gnss = None
+    if pos_rows:
+        ps = np.asarray(pos_rows, float)
+        _check_series(p, "message GLOBAL_POSITION_INT", ps[:, 0], {"position": ps[:, 1:4]}, strict=False)
+        gnss = GnssTrack(ps[:, 0], ps[:, 1], ps[:, 2], ps[:, 3], ps[:, 4:7])
+        sources["gnss"] = "GLOBAL_POSITION_INT"
+    attitude = None
+    if att_rows:
+        at = np.asarray(att_rows, float)
+        _check_series(p, "message ATTITUDE", at[:, 0], {"attitude": at[:, 1:4]}, strict=False)
+        attitude = AttitudeTrack(at[:, 0], q_nb_from_euler(at[:, 1], at[:, 2], at[:, 3]).reshape(-1, 4))
+        sources["attitude"] = "ATTITUDE"
+    return LogRecording(p, "tlog", imu, mg[:, 0], mg[:, 1:4], gnss, attitude, sources)
+
+
+def _read_csv(p: Path) -> LogRecording:
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(p, comment="#")
+    except (ValueError, UnicodeDecodeError, pd.errors.ParserError) as exc:
+        raise InputError(f"{p}: cannot read as CSV ({exc})") from None
+    cols = [c.strip() for c in df.columns]
+    df.columns = cols
+    missing = [c for c in CSV_IMU_COLUMNS if c not in cols]
+    if missing:
+        raise InputError(
+            f"{p}: missing column {missing[0]!r}; expected {','.join(CSV_IMU_COLUMNS)}[,mag_x,mag_y,mag_z]"
+        )
+    has_mag = all(c in cols for c in CSV_MAG_COLUMNS)
+    wanted = list(CSV_IMU_COLUMNS) + (list(CSV_MAG_COLUMNS) if has_mag else [])
+    try:
+        a = df[wanted].to_numpy(dtype=float)
+    except ValueError:
+        for c in wanted:
+            bad = pd.to_numeric(df[c], errors="coerce").isna() & df[c].notna()
+            if bad.any():
+                k = int(np.argmax(bad.to_numpy()))
+                raise InputError(f"{p}: row {k + 1} column {c!r}: not a number: {df[c].iloc[k]!r}") from None
+        raise
+    if len(a) < 2:
+        raise InputError(f"{p}: fewer than 2 data rows")
+    for j, c in enumerate(wanted):
+        bad = ~np.isfinite(a[:, j])
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(f"{p}: row {k + 1} column {c!r}: non-finite value {a[k, j]!r}")
+    _check_series(p, "CSV", a[:, 0], {}, strict=True)
+    imu = ImuBatch(a[:, 0], a[:, 1:4], a[:, 4:7])
+    mag_t = a[:, 0] if has_mag else np.zeros(0)
+    mag = a[:, 7:10] if has_mag else np.zeros((0, 3))
+    return LogRecording(p, "csv", imu, mag_t, mag, None, None, {"imu": "CSV", **({"mag": "CSV"} if has_mag else {})})
+
+
+# ------------------------------------------------------------------------------------------------ replay
+@dataclass(frozen=True)
+class ReplayResult:
+    """What a replay produced: output ``t`` (N,) s, ``nav`` states, ``sigma_ne`` (N,2) m, every fix (also "no
+    fix") and innovation, counts, and when the log has GNSS the horizontal error (N,) m against it at the output
+    times inside the GNSS span (nan elsewhere)."""
+
+    t: FloatArray
+    navs: list[NavState]
+    sigma_ne: FloatArray
+    fixes: list[Fix]
+    innovations: list[Innovation]
+    imu_samples: int
+    readings: int
+    duration_s: float
+    init_source: str
+    map_covers_start: bool
+    error_m: FloatArray | None = None
+
+    def summary(self) -> dict[str, Any]:
+        """Counts, fix statistics and (with GNSS) horizontal error figures, for the stdout summary and JSON."""
+        issued = [f for f in self.fixes if f.available]
+        no_fix = Counter(_reason_key(f.reason) for f in self.fixes if not f.available)
+        rejected = Counter(_reason_key(i.reason) for i in self.innovations if not i.accepted and i.reason)
+        out: dict[str, Any] = {
+            "imu_samples": self.imu_samples,
+            "duration_s": self.duration_s,
+            "readings": self.readings,
+            "fix_attempts": len(self.fixes),
+            "fixes_issued": len(issued),
+            "fixes_accepted": sum(1 for i in self.innovations if i.accepted),
+            "no_fix_reasons": dict(no_fix.most_common()),
+            "rejected_reasons": dict(rejected.most_common()),
+            "init": self.init_source,
+            "map_covers_start": self.map_covers_start,
+        }
+        if self.error_m is not None and np.isfinite(self.error_m).any():
+            e = self.error_m[np.isfinite(self.error_m)]
+            out["gnss_error_m"] = {
+                "rms": float(np.sqrt(np.mean(e**2))),
+                "mean": float(np.mean(e)),
+                "max": float(np.max(e)),
+                "final": float(e[-1]),
+                "samples": int(len(e)),
+            }
+        return out
+
+
+def _reason_key(reason: str) -> str:
+    """A reason without its numbers, so that reasons group ("ratio 1.3 < 2" and "ratio 1.7 < 2" are one)."""
+    key = reason.split(":")[0].strip() if ":" in reason else reason
+    key = re.sub(r"[-+]?\d+(\.\d*)?([eE][-+]?\d+)?", "#", key)
+    return key or "(no reason given)"
+
+
+def _nearest(t_series: FloatArray, t: float) -> int:
+    k = int(np.searchsorted(t_series, t))
+    if k == 0:
+        return 0
+    if k >= len(t_series):
+        return len(t_series) - 1
+    return k if abs(t_series[k] - t) < abs(t - t_series[k - 1]) else k - 1
+
+
+def _level(imu: ImuBatch, k0: int) -> tuple[float, float]:
+    """Roll and pitch (rad) from the mean specific force over the first :data:`LEVELLING_S` (FRD, at rest or in
+    steady flight: ``f_b ~ -C_bn g``)."""
+    k1 = max(int(np.searchsorted(imu.t, imu.t[k0] + LEVELLING_S)), k0 + 1)
+    f = imu.accel_b[k0:k1].mean(axis=0)
+    return math.atan2(-f[1], -f[2]), math.atan2(f[0], math.hypot(f[1], f[2]))
+
+
+def initial_state(
+    rec: LogRecording, init: tuple[float, float, float, float] | None = None
+) -> tuple[NavState, int, str]:
+    """The initial state, the index of the IMU sample it is at and where it came from.
+
+    ``init`` (lat, lon rad, h m ellipsoidal, yaw rad): position and heading given; roll and pitch from the log's
+    attitude if any (else levelled from the specific force); velocity from the log's GNSS if any (else at rest);
+    starts at the first IMU sample. Without ``init`` the log must hold GNSS and attitude: starts at the first IMU
+    sample at or after both. Missing both -> :class:`ConfigError` saying which option to add."""
+    imu = rec.imu
+    if init is not None:
+        k0 = 0
+        t0 = float(imu.t[0])
+        lat, lon, h, yaw = init
+        if rec.attitude is not None and rec.attitude.t[0] <= t0 + 1.0:
+            from ..core.frames import euler_from_q_nb
+
+            roll, pitch, _ = (float(x) for x in euler_from_q_nb(rec.attitude.q_nb[_nearest(rec.attitude.t, t0)]))
+        else:
+            roll, pitch = _level(imu, 0)
+        v_n = np.zeros(3)
+        if rec.gnss is not None and abs(rec.gnss.t[_nearest(rec.gnss.t, t0)] - t0) < 1.0:
+            v_n = rec.gnss.v_n[_nearest(rec.gnss.t, t0)]
+        return NavState(t0, lat, lon, h, v_n, q_nb_from_euler(roll, pitch, yaw)), k0, "--init"
+    missing = []
+    if rec.gnss is None:
+        missing.append(f"no GNSS position ({'vehicle_gps_position' if rec.fmt == 'ulog' else 'GLOBAL_POSITION_INT'})")
+    if rec.attitude is None:
+        missing.append(f"no attitude ({'vehicle_attitude' if rec.fmt == 'ulog' else 'ATTITUDE'})")
+    if missing:
+        raise ConfigError(
+            f"{rec.path}: cannot initialise from the log ({' and '.join(missing)}): add --init LAT_DEG,LON_DEG,ALT_M,YAW_DEG"
+        )
+    assert rec.gnss is not None and rec.attitude is not None
+    t_start = max(float(rec.gnss.t[0]), float(rec.attitude.t[0]), float(imu.t[0]))
+    k0 = int(np.searchsorted(imu.t, t_start - _TOL))
+    if k0 >= len(imu) - 1:
+        raise InputError(f"{rec.path}: no IMU samples after the first GNSS fix and attitude (t={t_start:.3f} s)")
+    t0 = float(imu.t[k0])
+    g = rec.gnss
+    lat = float(np.interp(t0, g.t, g.lat))
+    lon = float(np.interp(t0, g.t, np.unwrap(g.lon)))
+    h = float(np.interp(t0, g.t, g.h))
+    v_n = np.array([np.interp(t0, g.t, g.v_n[:, i]) for i in range(3)])
+    q = rec.attitude.q_nb[_nearest(rec.attitude.t, t0)]
+    return NavState(t0, lat, lon, h, v_n, q), k0, f"log ({rec.sources['gnss']} + {rec.sources['attitude']})"
+
+
+def replay(
+    rec: LogRecording,
+    fmap: Any,
+    *,
+    init: tuple[float, float, float, float] | None = None,
+    init_sigma_m: float = 30.0,
+    field_model: Callable[[np.ndarray, NavState], float | None] | None = None,
+    reading_interval_s: float = 0.1,
+    output_dt: float = 0.2,
+    duration_s: float | None = None,
+    pipeline_factory: Callable[[NavState, float], Any] | None = None,
+    **pipeline_options: Any,
+) -> ReplayResult:
+    """Run the online pipeline over ``rec`` as the bridge would (module docstring).
+
+    ``field_model`` turns a body magnetometer vector (nT) at the current estimate into a map reading (default: a
+    :class:`.bridge.ScalarAnomalyModel` is the caller's to give; ``None`` means no readings); readings are taken
+    at most every ``reading_interval_s`` s and evaluated at the last recorded estimate (the field model needs the
+    position only for the IGRF, which changes by a few nT per km); the estimate is recorded every ``output_dt`` s
+    (at the first IMU sample at or after each output time); ``duration_s`` stops the replay that many seconds after
+    the start. ``pipeline_factory(nav0, sigma)`` builds the pipeline (default
+    :func:`make_online_pipeline` with ``fmap`` and ``pipeline_options``)."""
+    if not (reading_interval_s >= 0 and output_dt > 0):
+        raise ConfigError(
+            f"reading interval must be >= 0 and output interval > 0 s, got {reading_interval_s}, {output_dt}"
+        )
+    nav0, k0, init_source = initial_state(rec, init)
+    if pipeline_factory is None:
+        pipe = make_online_pipeline(nav0, init_sigma_m, fmap, **pipeline_options)
+    else:
+        pipe = pipeline_factory(nav0, init_sigma_m)
+    imu = rec.imu
+    k_end = len(imu)
+    if duration_s is not None:
+        if not duration_s > 0:
+            raise ConfigError(f"--duration must be > 0 s, got {duration_s}")
+        k_end = int(np.searchsorted(imu.t, imu.t[k0] + duration_s + _TOL, side="right"))
+    t_all, gyro, accel = imu.t[:k_end], imu.gyro_b[:k_end], imu.accel_b[:k_end]
+    mag_t, mag = rec.mag_t, rec.mag_b_nt
+    j = int(np.searchsorted(mag_t, t_all[k0], side="right"))
+    last_reading = -math.inf
+    n_readings = 0
+    out_t: list[float] = []
+    navs: list[NavState] = []
+    sig: list[tuple[float, float]] = []
+
+    def record() -> None:
+        est = pipe.estimate()
+        P = np.asarray(est.P)
+        out_t.append(est.nav.t)
+        navs.append(est.nav)
+        sig.append((math.sqrt(max(P[0, 0], 0.0)), math.sqrt(max(P[1, 1], 0.0))))
+
+    def reading(k_mag: int) -> None:
+        nonlocal last_reading, n_readings
+        tm = float(mag_t[k_mag])
+        if field_model is None or tm - last_reading < reading_interval_s - _TOL:
+            return
+        value = field_model(mag[k_mag], navs[-1])
+        if value is not None and np.all(np.isfinite(value)):
+            pipe.push_reading(tm, value)
+            last_reading = tm
+            n_readings += 1
+
+    record()
+    t_next = t_all[k0] + output_dt
+    for k in range(k0 + 1, len(t_all)):
+        t = float(t_all[k])
+        while j < len(mag_t) and mag_t[j] < t - _TOL:  # strictly inside the sample: queued, applied at its time
+            reading(j)
+            j += 1
+        pipe.push_imu(t, gyro[k], accel[k])
+        while j < len(mag_t) and mag_t[j] <= t + _TOL:  # at the sample time (the bridge's case)
+            reading(j)
+            j += 1
+        if t >= t_next - _TOL:
+            record()
+            t_next += output_dt * max(1.0, math.floor((t - t_next) / output_dt + _TOL) + 1.0)
+    if out_t[-1] < t_all[-1] - _TOL:
+        record()
+    t_out = np.asarray(out_t)
+    err = None
+    if rec.gnss is not None:
+        g = rec.gnss
+        inside = (t_out >= g.t[0] - _TOL) & (t_out <= g.t[-1] + _TOL)
+        lat_ref = np.interp(t_out, g.t, g.lat)
+        lon_ref = np.interp(t_out, g.t, np.unwrap(g.lon))
+        e = horizontal_error_m(np.array([n.lat for n in navs]), np.array([n.lon for n in navs]), lat_ref, lon_ref)
+        err = np.where(inside, e, np.nan)
+    covers = True
+    if fmap is not None and hasattr(fmap, "covers"):
+        covers = bool(np.asarray(fmap.covers(nav0.lat, nav0.lon)).reshape(-1)[0])
+    return ReplayResult(
+        t_out,
+        navs,
+        np.asarray(sig, float).reshape(-1, 2),
+        list(pipe.fixes),
+        list(pipe.innovations),
+        len(t_all) - k0 - 1,
+        n_readings,
+        float(t_all[-1] - t_all[k0]),
+        init_source,
+        covers,
+        err,
+    )
+
+
+def write_trajectory(path: str | Path, result: ReplayResult) -> None:
+    """The fused trajectory as CSV (:data:`TRAJ_COLUMNS`; degrees at this edge), written atomically."""
+    from ..core.atomic import atomic_path
+    from ..core.frames import euler_from_q_nb
+
+    navs = result.navs
+    q = np.array([n.q_nb for n in navs]).reshape(-1, 4)
+    roll, pitch, yaw = (np.degrees(np.asarray(x, float)) for x in euler_from_q_nb(q))
+    cols = [
+        result.t,
+        np.degrees([n.lat for n in navs]),
+        np.degrees([n.lon for n in navs]),
+        np.array([n.h for n in navs]),
+        *np.array([n.v_n for n in navs]).reshape(-1, 3).T,
+        roll,
+        pitch,
+        yaw,
+        result.sigma_ne[:, 0],
+        result.sigma_ne[:, 1],
+    ]
+    data = np.column_stack(cols)
+    fmt = ["%.6f", "%.9f", "%.9f", "%.3f", "%.4f", "%.4f", "%.4f", "%.5f", "%.5f", "%.5f", "%.3f", "%.3f"]
+    with atomic_path(path) as tmp:
+        np.savetxt(tmp, data, fmt=fmt, delimiter=",", header=",".join(TRAJ_COLUMNS), comments="")
