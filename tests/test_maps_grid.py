@@ -166,3 +166,23 @@ def test_query_on_the_last_node_is_on_the_map():
     la, lo = np.array([-19.0 * DEG, -20.0 * DEG]), np.array([141.5 * DEG, 140.0 * DEG])
     for meth in ("bilinear", "bicubic"):
         np.testing.assert_allclose(m.value(la, lo, method=meth), _bilin(la, lo), atol=1e-9)
+
+
+def test_compiled_tangent_plane_matches_core_frames(rng):
+    from magnav_ins.core.frames import geodetic_to_ned, ned_to_geodetic
+    from magnav_ins.maps.tangent import geodetic_to_tangent, tangent_to_geodetic
+
+    lat0, lon0, h0 = -0.38, 2.455, 400.0
+    lat = lat0 + rng.uniform(-0.01, 0.01, 500)  # +-60 km
+    lon = lon0 + rng.uniform(-0.01, 0.01, 500)
+    n, e = geodetic_to_tangent(lat, lon, lat0, lon0, h0)
+    ref = geodetic_to_ned(lat, lon, h0, lat0, lon0, h0)
+    np.testing.assert_allclose(n, ref[:, 0], atol=1e-7)
+    np.testing.assert_allclose(e, ref[:, 1], atol=1e-7)
+    # inverse: back to the same points (height h0), and the point lies on the NED ray of (n, e, down)
+    la, lo = tangent_to_geodetic(n, e, lat0, lon0, h0)
+    np.testing.assert_allclose(la, lat, atol=1e-14)
+    np.testing.assert_allclose(lo, lon, atol=1e-14)
+    la2, lo2, h2 = ned_to_geodetic(ref, lat0, lon0, h0)
+    np.testing.assert_allclose(h2, h0, atol=1e-6)
+    np.testing.assert_allclose(la2, la, atol=1e-14)

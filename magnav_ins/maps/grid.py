@@ -29,9 +29,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..core.errors import MapError
-from ..core.frames import geodetic_to_ned, meters_to_latlon, ned_to_geodetic, radii_of_curvature
+from ..core.frames import radii_of_curvature
 from ..core.types import FieldKind
 from . import interp
+from .tangent import geodetic_to_tangent, tangent_to_geodetic
 
 FloatArray = NDArray[np.float64]
 Frame = Literal["geodetic", "local"]
@@ -246,25 +247,19 @@ class GridMap:
 
     # ------------------------------------------------------------------ frame helpers
     def to_local(self, lat: ArrayLike, lon: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        """Geodetic (rad) to the map's local tangent plane (northing, easting) in m about :attr:`origin`."""
-        lat0, lon0, h0 = self.origin
-        r = geodetic_to_ned(np.asarray(lat, float), np.asarray(lon, float), h0, lat0, lon0, h0)
-        return r[..., 0], r[..., 1]
+        """Geodetic (rad) to the map's local tangent plane (northing, easting) in m about :attr:`origin`: the
+        north/east components of :func:`magnav_ins.core.frames.geodetic_to_ned` for the point ``(lat, lon, h0)``
+        (compiled twin in :mod:`magnav_ins.maps.tangent`)."""
+        la, lo = np.broadcast_arrays(np.asarray(lat, float), np.asarray(lon, float))
+        n, e = geodetic_to_tangent(np.ascontiguousarray(la.ravel()), np.ascontiguousarray(lo.ravel()), *self.origin)
+        return n.reshape(la.shape), e.reshape(la.shape)
 
     def from_local(self, northing: ArrayLike, easting: ArrayLike) -> tuple[FloatArray, FloatArray]:
-        """Local (northing, easting) m about :attr:`origin` to geodetic (lat, lon) rad; the exact inverse of
-        :meth:`to_local` (points on the surface ``h = h0``), found by fixed-point iteration from the tangent-plane
-        point (converges to 1e-9 m in a few steps for offsets below ~100 km)."""
-        lat0, lon0, h0 = self.origin
+        """Local (northing, easting) m about :attr:`origin` to geodetic (lat, lon) rad: the exact inverse of
+        :meth:`to_local` (the point of height ``h0`` with those tangent-plane coordinates)."""
         n, e = np.broadcast_arrays(np.asarray(northing, float), np.asarray(easting, float))
-        r_n = np.stack([n, e, np.zeros_like(n)], axis=-1)
-        lat, lon, _ = ned_to_geodetic(r_n, lat0, lon0, h0)
-        for _ in range(4):
-            n1, e1 = self.to_local(lat, lon)
-            dlat, dlon = meters_to_latlon(n - n1, e - e1, lat, h0)
-            lat = lat + dlat
-            lon = lon + dlon
-        return lat, lon
+        la, lo = tangent_to_geodetic(np.ascontiguousarray(n.ravel()), np.ascontiguousarray(e.ravel()), *self.origin)
+        return la.reshape(n.shape), lo.reshape(n.shape)
 
     def _query_axes(self, lat: ArrayLike, lon: ArrayLike) -> tuple[FloatArray, FloatArray, tuple[int, ...]]:
         la = np.asarray(lat, dtype=float)
