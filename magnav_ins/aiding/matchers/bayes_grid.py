@@ -93,7 +93,7 @@ class BayesGridMatcher:
     min_variability: float = 0.5
     max_nodes: int = 1_000_000
     quantisation: float = 1.0
-    max_refine: float = 8.0
+    max_refine: float = 4.0
     name: str = "bayes_grid"
 
     def __post_init__(self) -> None:

@@ -39,6 +39,7 @@ from scipy import ndimage
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
+from ._kernels import grid_far_max, grid_moments, grid_scan1, grid_variability
 from ._local import (
     WorkFrame,
     feature_variability,
@@ -58,9 +59,11 @@ FloatArray = NDArray[np.float64]
 class Surface:
     """A log-likelihood surface over candidate positions (north/east metres in ``frame``).
 
-    ``logl`` (M,) with ``-inf`` where the map is off; ``n``, ``e`` (M,) candidate positions; ``shape`` the grid
-    shape when the candidates form a grid (else ``None``); ``step`` the grid spacing m; ``variability`` the map
-    feature variability (unit^2) of the window; ``sigma2`` the likelihood variance used (unit^2)."""
+    ``logl`` (M,) with ``-inf`` where the map is off. For a grid (``shape = (ni, nj)``), ``n`` and ``e`` are the
+    grid's axes (ni,), (nj,) and ``logl`` is the flattened (ni, nj) surface; for scattered candidates
+    (``shape = None``, road maps) ``n``, ``e`` (M,) are the candidate positions. ``step`` the grid spacing m;
+    ``variability`` the map feature variability (unit^2) of the window; ``sigma2`` the likelihood variance used
+    (unit^2); ``half`` the window half-widths (m)."""
 
     frame: WorkFrame
     logl: FloatArray
@@ -71,6 +74,7 @@ class Surface:
     variability: float
     sigma2: float
     half: tuple[float, float] = (np.inf, np.inf)
+    k_max: int = -1
 
 
 @dataclass
@@ -167,6 +171,16 @@ class LikelihoodMatcher:
                 n_ax, e_ax, v_last = n_ax[::stride], e_ax[::stride], v_last[::stride, ::stride]
             steps = [float(a[1] - a[0]) for a in (n_ax, e_ax) if a.size > 1]
             step = float(np.mean(steps)) if steps else step0
+            v_last = np.ascontiguousarray(v_last, dtype=float)
+            if np.isfinite(g_rms):  # value error of the nearest node: |grad|^2 step^2 / 12
+                s2 = s2 + g_rms**2 * step**2 / 12.0
+            ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
+            if nz == 1 and not (self.demean or self.difference):  # the fast path: one compiled pass
+                l2, kmax, variability = grid_scan1(v_last, np.ascontiguousarray(z[0]), s2, ic, jc)
+                return Surface(
+                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, float(variability), s2, (half_n, half_e), int(kmax)
+                )
+            variability = float(grid_variability(v_last, ic, jc))
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m_last = v_last.reshape(1, gn.size, ncomp)
             if nz > 1:
@@ -179,15 +193,10 @@ class LikelihoodMatcher:
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m = frame.sample(dn[:, None, None] + gn[None], de[:, None, None] + ge[None], h_last)
             m = m.reshape(nz, gn.size, ncomp)
-        if np.isfinite(g_rms):  # value error of the nearest node: |grad|^2 step^2 / 12
-            s2 = s2 + g_rms**2 * step**2 / 12.0
-        center = m[-1, int(np.argmin(gn.ravel() ** 2 + ge.ravel() ** 2))]
-        if np.all(np.isfinite(center)):
-            variability = feature_variability(m[-1], center)
-        else:  # INS position off the map: E (x_i - x_j)^2 = 2 var for the window's finite values
-            variability = (
-                2.0 * float(np.sum(np.nan_to_num(np.nanvar(m[-1], axis=0)))) if np.any(np.isfinite(m[-1])) else 0.0
-            )
+            if np.isfinite(g_rms):  # value error of the nearest node: |grad|^2 step^2 / 12
+                s2 = s2 + g_rms**2 * step**2 / 12.0
+            ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
+            variability = float(grid_variability(np.ascontiguousarray(m[-1].reshape(gn.shape + (ncomp,))), ic, jc))
         zz, mm = z[:, None, :], m
         if self.difference and len(z) > 1:
             zz, mm = np.diff(zz, axis=0), np.diff(mm, axis=0)
@@ -197,7 +206,7 @@ class LikelihoodMatcher:
             mm = mm - mm.mean(axis=0, keepdims=True)
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
-        return Surface(frame, logl, gn.ravel(), ge.ravel(), gn.shape, step, variability, s2, (half_n, half_e))
+        return Surface(frame, logl, n_ax, e_ax, gn.shape, step, variability, s2, (half_n, half_e))
 
     def _track_surface(
         self,
@@ -272,8 +281,8 @@ class LikelihoodMatcher:
     def decide(self, surf: Surface, t: float) -> Fix:
         """Apply ML / MLR / ABL to a surface."""
         logl = surf.logl
-        finite = np.isfinite(logl)
-        if not np.any(finite):
+        k = surf.k_max if surf.k_max >= 0 else int(np.argmax(logl))
+        if not np.isfinite(logl[k]):
             return Fix.no_fix(t, "off the map: no map values in the search window", self.name)
         if surf.variability < (self.min_variability**2) * surf.sigma2:
             return Fix.no_fix(
@@ -282,31 +291,57 @@ class LikelihoodMatcher:
                 f"{self.min_variability:g} x reading sigma {np.sqrt(surf.sigma2):.3g}",
                 self.name,
             )
-        k = int(np.argmax(logl))
-        lmax = logl[k]
-        p = np.exp(logl - lmax)
-        p /= p.sum()
-        score = float(p[k])
-        n_fix, e_fix = float(surf.n[k]), float(surf.e[k])
+        lmax = float(logl[k])
+        grid = surf.shape is not None
+        if grid:
+            ki, kj = divmod(k, surf.shape[1])  # type: ignore[index]
+            n_fix, e_fix = float(surf.n[ki]), float(surf.e[kj])
+            l2 = logl.reshape(surf.shape)
+            pk, snn, sne, see, _ = grid_moments(l2, surf.n, surf.e, lmax, n_fix, e_fix)
+            p = None
+            about = (n_fix, e_fix)
+        else:
+            p = np.exp(logl - lmax)
+            p /= p.sum()
+            pk = float(p[k])
+            n_fix, e_fix = float(surf.n[k]), float(surf.e[k])
+        score = float(pk)
         if self.method == "mlr":
-            dist2 = (surf.n - n_fix) ** 2 + (surf.e - e_fix) ** 2
-            far = finite & (dist2 >= self.min_distance_m**2)
-            log_ratio = float(lmax - logl[far].max()) if np.any(far) else np.inf
+            if grid:
+                l_far = float(grid_far_max(l2, surf.n, surf.e, n_fix, e_fix, self.min_distance_m**2))
+            else:
+                far = np.isfinite(logl) & ((surf.n - n_fix) ** 2 + (surf.e - e_fix) ** 2 >= self.min_distance_m**2)
+                l_far = float(logl[far].max()) if np.any(far) else -np.inf
+            log_ratio = lmax - l_far
             score = float(np.exp(min(log_ratio, 700.0)))
             if log_ratio < np.log(self.ratio_threshold):
                 return Fix.no_fix(
                     t, f"ambiguous: likelihood ratio {score:.3g} below {self.ratio_threshold:g}", self.name, score
                 )
         elif self.method == "abl":
-            if p[k] < self.peak_threshold:
+            if pk < self.peak_threshold:
                 return Fix.no_fix(
-                    t, f"no distinct peak: normalised peak {p[k]:.3g} below {self.peak_threshold:g}", self.name, p[k]
+                    t, f"no distinct peak: normalised peak {pk:.3g} below {self.peak_threshold:g}", self.name, pk
                 )
+            if p is None:
+                p = np.exp(logl - lmax)
+                p /= p.sum()
             mass = _bin_mass(p, surf, self.bin_size_m)
             kb = int(np.argmax(mass))
-            n_fix, e_fix, score = float(surf.n[kb]), float(surf.e[kb]), float(mass[kb])
-        cov = moments_about(p, surf.n, surf.e, n_fix, e_fix) + np.eye(2) * surf.step**2 / 12.0
-        if surf.shape is None:  # road map: the vehicle is somewhere across the road
+            score = float(mass[kb])
+            if grid:
+                bi, bj = divmod(kb, surf.shape[1])  # type: ignore[index]
+                n_fix, e_fix = float(surf.n[bi]), float(surf.e[bj])
+            else:
+                n_fix, e_fix = float(surf.n[kb]), float(surf.e[kb])
+        if grid:
+            if about != (n_fix, e_fix):  # ABL moved the fix off the peak
+                _, snn, sne, see, _ = grid_moments(l2, surf.n, surf.e, lmax, n_fix, e_fix)
+            cov = np.array([[snn, sne], [sne, see]])
+        else:
+            cov = moments_about(p, surf.n, surf.e, n_fix, e_fix)
+        cov = cov + np.eye(2) * surf.step**2 / 12.0
+        if not grid:  # road map: the vehicle is somewhere across the road
             cov = cov + np.eye(2) * self.track_sigma_m**2
         max_sig = self.max_fix_sigma_m
         if max_sig is None:

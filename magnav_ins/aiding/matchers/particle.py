@@ -7,8 +7,10 @@ State per particle, in metres north/east of the initial position (a :class:`~._l
   first-order Gauss-Markov process ``da/dt = -a / tau + w`` with ``tau = 2 s`` and steady-state ``sigma = 5 m/s^2``
   (003 sec. 5.1), discretised exactly for ``a`` and by the trapezoid for ``v``, ``p`` (sub-steps of at most
   ``tau / 4``).
-* ``dynamics="ins"``: particles move with the INS position increment between predictions (the priors handed to
-  :meth:`ParticleFilter.predict`) plus a random walk ``ins_sigma`` m/sqrt(s); velocity = INS velocity.
+* ``dynamics="ins"``: particles move with the INS displacement between predictions (the trapezoid of the INS
+  velocities of the priors handed to :meth:`ParticleFilter.predict`; velocities rather than positions so that a
+  fuser's position corrections between two predictions do not move the cloud again) plus a random walk
+  ``ins_sigma`` m/sqrt(s).
 
 Initialisation: ``n_particles`` (500) uniform in a disc of ``init_radius_m`` (50 m) about the prior position
 (003 sec. 5.1), or Gaussian from the prior covariance (``init="gaussian"``).
@@ -168,8 +170,10 @@ class ParticleFilter:
                     vel += 0.5 * (acc + a_new) * h
                     acc = a_new
             else:
-                pos += (ins_ne - state.ins_ne) + self.ins_sigma * np.sqrt(dt) * rng.standard_normal((m, 2))
-                vel[:] = np.asarray(nav.v_n, float)[:2]
+                v_now = np.asarray(nav.v_n, float)[:2]
+                step = 0.5 * (state.vel.mean(axis=0) + v_now) * dt  # trapezoid of the INS velocity
+                pos += step + self.ins_sigma * np.sqrt(dt) * rng.standard_normal((m, 2))
+                vel[:] = v_now
         logw = state.logw.copy()
         if self.road is not None:
             lat, lon = state.frame.to_latlon(pos[:, 0], pos[:, 1])

@@ -1,0 +1,180 @@
+"""Compiled (numba) kernels for likelihood scans over regular grids of candidate positions.
+
+Grids are given by their north axis ``n_ax`` (ni,) and east axis ``e_ax`` (nj,) in metres of the matcher's working
+frame, and values / log-likelihoods as ``(ni, nj[, c])`` arrays. ``-inf`` log-likelihood marks nodes off the map.
+"""
+
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@nb.njit(cache=True)
+def grid_loglik(values: FloatArray, z: FloatArray, s2: float) -> FloatArray:
+    """``-|z - m|^2 / (2 s2)`` at every node of ``values`` (ni, nj, c); ``-inf`` where a component is NaN."""
+    ni, nj, c = values.shape
+    out = np.empty((ni, nj))
+    for i in range(ni):
+        for j in range(nj):
+            acc = 0.0
+            for m in range(c):
+                r = z[m] - values[i, j, m]
+                acc += r * r
+            out[i, j] = -0.5 * acc / s2 if np.isfinite(acc) else -np.inf
+    return out
+
+
+@nb.njit(cache=True)
+def grid_scan1(values: FloatArray, z: FloatArray, s2: float, ic: int, jc: int) -> tuple[FloatArray, int, float]:
+    """One pass for a single reading: log-likelihood grid (as :func:`grid_loglik`), the flat index of its maximum,
+    and the feature variability about node ``(ic, jc)`` (as :func:`grid_variability`, which it calls when the
+    centre node is NaN)."""
+    ni, nj, c = values.shape
+    out = np.empty((ni, nj))
+    centre_ok = True
+    for m in range(c):
+        if not np.isfinite(values[ic, jc, m]):
+            centre_ok = False
+    best = -np.inf
+    kbest = 0
+    sv = 0.0
+    nv = 0
+    for i in range(ni):
+        for j in range(nj):
+            acc = 0.0
+            dv = 0.0
+            for m in range(c):
+                v = values[i, j, m]
+                r = z[m] - v
+                acc += r * r
+                if centre_ok:
+                    q = v - values[ic, jc, m]
+                    dv += q * q
+            lv = -0.5 * acc / s2 if np.isfinite(acc) else -np.inf
+            out[i, j] = lv
+            if lv > best:
+                best = lv
+                kbest = i * nj + j
+            if centre_ok and np.isfinite(dv) and dv > 0.0:
+                sv += dv
+                nv += 1
+    if centre_ok:
+        var = sv / nv if nv > 0 else 0.0
+    else:
+        var = grid_variability(values, ic, jc)
+    return out, kbest, var
+
+
+@nb.njit(cache=True)
+def grid_moments(
+    logl: FloatArray, n_ax: FloatArray, e_ax: FloatArray, lmax: float, n0: float, e0: float
+) -> tuple[float, float, float, float, float]:
+    """Normalised-likelihood statistics: (peak normalised mass, S_nn, S_ne, S_ee) about ``(n0, e0)`` and the
+    normaliser ``sum exp(logl - lmax)``."""
+    ni, nj = logl.shape
+    tot = 0.0
+    snn = 0.0
+    sne = 0.0
+    see = 0.0
+    for i in range(ni):
+        dn = n_ax[i] - n0
+        for j in range(nj):
+            d = logl[i, j] - lmax
+            if d < -46.0:  # p < 1e-20: negligible (also skips -inf)
+                continue
+            p = np.exp(d)
+            de = e_ax[j] - e0
+            tot += p
+            snn += p * dn * dn
+            sne += p * dn * de
+            see += p * de * de
+    return 1.0 / tot, snn / tot, sne / tot, see / tot, tot
+
+
+@nb.njit(cache=True)
+def grid_far_max(logl: FloatArray, n_ax: FloatArray, e_ax: FloatArray, n0: float, e0: float, dmin2: float) -> float:
+    """Largest log-likelihood at nodes at least ``sqrt(dmin2)`` from ``(n0, e0)`` (``-inf`` if none)."""
+    ni, nj = logl.shape
+    best = -np.inf
+    for i in range(ni):
+        dn = n_ax[i] - n0
+        for j in range(nj):
+            de = e_ax[j] - e0
+            if dn * dn + de * de >= dmin2 and logl[i, j] > best:
+                best = logl[i, j]
+    return best
+
+
+@nb.njit(cache=True)
+def grid_variability(values: FloatArray, ic: int, jc: int) -> float:
+    """Wang eq. 14 about node ``(ic, jc)``: mean of ``|m_ij - m_c|^2`` over the other finite nodes; if the centre
+    is NaN, twice the summed component variance of the finite nodes (the same expectation)."""
+    ni, nj, c = values.shape
+    centre_ok = True
+    for m in range(c):
+        if not np.isfinite(values[ic, jc, m]):
+            centre_ok = False
+    s = 0.0
+    cnt = 0
+    if centre_ok:
+        for i in range(ni):
+            for j in range(nj):
+                d = 0.0
+                for m in range(c):
+                    q = values[i, j, m] - values[ic, jc, m]
+                    d += q * q
+                if np.isfinite(d) and d > 0.0:
+                    s += d
+                    cnt += 1
+        return s / cnt if cnt > 0 else 0.0
+    out = 0.0
+    for m in range(c):
+        s1 = 0.0
+        s2 = 0.0
+        cnt = 0
+        for i in range(ni):
+            for j in range(nj):
+                v = values[i, j, m]
+                if np.isfinite(v):
+                    s1 += v
+                    s2 += v * v
+                    cnt += 1
+        if cnt > 1:
+            mu = s1 / cnt
+            out += 2.0 * (s2 / cnt - mu * mu)
+    return out
+
+
+@nb.njit(cache=True)
+def grid_gradient_rms(values: FloatArray, dn: float, de: float) -> float:
+    """RMS horizontal gradient magnitude (unit/m, summed over components) by forward differences; NaN if none."""
+    ni, nj, c = values.shape
+    sn = 0.0
+    cn = 0
+    se = 0.0
+    ce = 0
+    for i in range(ni):
+        for j in range(nj):
+            if i + 1 < ni:
+                d = 0.0
+                for m in range(c):
+                    q = (values[i + 1, j, m] - values[i, j, m]) / dn
+                    d += q * q
+                if np.isfinite(d):
+                    sn += d
+                    cn += 1
+            if j + 1 < nj:
+                d = 0.0
+                for m in range(c):
+                    q = (values[i, j + 1, m] - values[i, j, m]) / de
+                    d += q * q
+                if np.isfinite(d):
+                    se += d
+                    ce += 1
+    if cn == 0 or ce == 0:
+        return np.nan
+    return np.sqrt(sn / cn + se / ce)
