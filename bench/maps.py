@@ -78,6 +78,40 @@ def bench_interp(n_points: int) -> dict:
         "scipy_rgi_linear_ms": 1e3 * _best(lambda: rgi(pts)),
         "scipy_map_coordinates_cubic_ms": 1e3 * _best(lambda: map_coordinates(vals, [fy, fx], order=3)),
         "max_abs_diff_vs_scipy": float(np.max(np.abs(ours - ref))),
+        **bench_frames(n_points),
+    }
+
+
+def bench_frames(n_points: int) -> dict:
+    """Queries that convert frames: lat/lon on a local map, northing/easting on a geodetic map (1 M each)."""
+    rng = np.random.default_rng(1)
+    north = np.linspace(-15e3, 15e3, 301)
+    east = np.linspace(-15e3, 15e3, 301)
+    v = rng.normal(size=(301, 301))
+    loc = GridMap(
+        north,
+        east,
+        v,
+        kind=FieldKind.TOTAL_FIELD_ANOMALY_NT,
+        frame="local",
+        altitude_m=400.0,
+        origin=(-0.383, 2.455, 400.0),
+    )
+    n = rng.uniform(-15e3, 15e3, n_points)
+    e = rng.uniform(-15e3, 15e3, n_points)
+    la, lo = loc.from_local(n, e)
+    geo = GridMap(
+        np.linspace(-0.386, -0.380, 301),
+        np.linspace(2.452, 2.458, 301),
+        v,
+        kind=FieldKind.TOTAL_FIELD_ANOMALY_NT,
+        frame="geodetic",
+        altitude_m=400.0,
+    )
+    return {
+        "local_map_value_latlon_ms": 1e3 * _best(lambda: loc.value(la, lo), 3),
+        "local_map_value_ne_ms": 1e3 * _best(lambda: loc.value_ne(n, e), 3),
+        "geodetic_map_value_ne_ms": 1e3 * _best(lambda: geo.value_ne(0.01 * n, 0.01 * e), 3),
     }
 
 

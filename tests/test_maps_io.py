@@ -208,6 +208,8 @@ def test_load_map_dispatch(tmp_path, rng):
         load_map("builtin:nowhere")
     with pytest.raises(MapError, match="no such map file"):
         load_map(str(tmp_path / "x.nc"))
+    with pytest.raises(MapError, match=r"unknown map option\(s\) \['spacing'\]"):
+        load_map("builtin:osborne-magnetic", spacing=3)
 
 
 def test_shipped_maps_load_with_metadata():

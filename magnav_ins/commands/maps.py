@@ -249,4 +249,5 @@ def run_sample(args: argparse.Namespace) -> int:
         out["value"] = v
     with atomic_path(args.out) as tmp:
         out.to_csv(tmp, index=False, float_format="%.10g")
+        tmp.chmod(0o644)
     return 0

@@ -515,11 +515,17 @@ def load_map(
     datum: str | None = None,
     geoid_undulation_m: float | None = None,
     method: str = "auto",
+    **unknown: Any,
 ) -> GridMap:
     """Any map the project accepts: ``builtin:NAME`` (shipped, :mod:`magnav_ins.maps.builtin`), a NetCDF grid
     (:func:`read_map`), or a survey CSV(.xz) gridded on load at ``grid_spacing_m`` (required) with
     :func:`magnav_ins.maps.build.grid_survey` (``exclude_lines`` left out)."""
     s = str(spec)
+    if unknown:
+        raise MapError(
+            f"{s}: unknown map option(s) {sorted(unknown)}; expected grid_spacing_m, exclude_lines, kind, altitude_m, "
+            "datum, geoid_undulation_m, method"
+        )
     if s.startswith(BUILTIN_PREFIX):
         from .builtin import load_builtin_map
 
