@@ -10,10 +10,11 @@ initial :class:`NavEstimate`.
 
 Frames. GTSAM works here in an Earth-fixed Cartesian frame L: the NED axes at the initial position, frozen to the
 Earth (``PreintegrationCombinedParams.MakeSharedD(g)``: nav = NED, gravity +down). L is Earth-fixed, so the Earth rate
-is the constant ``omega_ie_L`` (``setOmegaCoriolis``) and there is no transport rate; the plumb-line gravity turns
-as the vehicle moves away from the origin (1 mrad per 6.4 km), which a single ``n_gravity`` cannot express, so the
-specific force fed to the preintegrator is compensated: ``f_b' = f_b + C_bL (g_L(r) - g_L(0))`` with ``r`` and ``C_bL``
-the current prediction (updated every ``gravity_update_s``). Body = FRD; ``Pose3`` rotation = ``C_Lb``; quaternion
+is the constant ``omega_ie_L`` and there is no transport rate; the plumb-line gravity turns as the vehicle moves away
+from the origin (1 mrad per 6.4 km), which a single ``n_gravity`` cannot express. The samples fed to the
+preintegrator are therefore compensated to L: ``omega' = omega - C_bL omega_ie_L`` and
+``f' = f + C_bL (g_L(r) - g_L(0) - 2 omega_ie_L x v_L)`` with ``r, v_L, C_bL`` the current prediction (refreshed every
+``gravity_update_s``); GTSAM's Coriolis option stays off. Body = FRD; ``Pose3`` rotation = ``C_Lb``; quaternion
 order never leaves this module (rotations cross as matrices). The public face speaks :class:`NavState` /
 :class:`NavEstimate` in WGS-84: L <-> geodetic through :class:`common.LocalFrame`.
 
@@ -84,6 +85,7 @@ class GraphFuser:
         relinearize_skip: int = 1,
         gravity_update_s: float = 0.1,
         integration_sigma: float = 1e-4,
+        reset_after: int = 3,
     ) -> None:
         P0 = np.asarray(init.P, dtype=float)
         if P0.shape[0] < LAYOUT_15.size or P0.shape[0] != P0.shape[1]:
@@ -93,6 +95,8 @@ class GraphFuser:
         self.noise = noise
         self.gate = ChiSquareGate(gate_probability, 2)
         self.huber_k = float(huber_k)
+        self.reset_after = int(reset_after)
+        self._n_rejected = 0
         self.vertical_sigma_m = float(vertical_sigma_m)
         self.gravity_update_s = float(gravity_update_s)
         nav0 = init.nav
@@ -105,7 +109,8 @@ class GraphFuser:
         p.setIntegrationCovariance(np.eye(3) * integration_sigma**2)
         p.setBiasAccCovariance(np.eye(3) * max(noise.accel_bias_rw, _RW_FLOOR) ** 2)
         p.setBiasOmegaCovariance(np.eye(3) * max(noise.gyro_bias_rw, _RW_FLOOR) ** 2)
-        p.setOmegaCoriolis(omega_ie_n(nav0.lat))  # the Earth rate, constant in the Earth-fixed frame L
+        p.setOmegaCoriolis(np.zeros(3))  # Earth rate and Coriolis are compensated in the samples (_integrate)
+        self._w_ie_L = omega_ie_n(nav0.lat)  # the Earth rate, constant in the Earth-fixed frame L
         self._params = p
 
         ip = gtsam.ISAM2Params()
@@ -122,14 +127,17 @@ class GraphFuser:
         b_g = init.bias_g if hasattr(init, "bias_g") else np.zeros(3)
         bias0 = gtsam.imuBias.ConstantBias(np.asarray(b_a, float), np.asarray(b_g, float))
         Pl = self._layout_to_gtsam_cov(symmetrise(P0[:15, :15], 1e-12), state0)
-        graph = gtsam.NonlinearFactorGraph()
-        graph.add(gtsam.PriorFactorPose3(X(0), state0.pose(), gtsam.noiseModel.Gaussian.Covariance(Pl[:6, :6])))
-        graph.add(gtsam.PriorFactorVector(V(0), state0.velocity(), gtsam.noiseModel.Gaussian.Covariance(Pl[6:9, 6:9])))
-        graph.add(gtsam.PriorFactorConstantBias(B(0), bias0, gtsam.noiseModel.Gaussian.Covariance(Pl[9:15, 9:15])))
         values = gtsam.Values()
         values.insert(X(0), state0.pose())
         values.insert(V(0), state0.velocity())
         values.insert(B(0), bias0)
+        # one joint Gaussian prior on (X0, V0, B0) that keeps the cross-covariances of the initial P: the whitened
+        # linear factor ||U dx||^2 with U^T U = Pl^-1, held at the initial values (LinearContainerFactor)
+        U = np.linalg.cholesky(np.linalg.inv(Pl)).T
+        prior = gtsam.JacobianFactor(X(0), U[:, 0:6], V(0), U[:, 6:9], B(0), U[:, 9:15], np.zeros(15),
+                                     gtsam.noiseModel.Unit.Create(15))  # fmt: skip
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.LinearContainerFactor(prior, values))
         self._update(graph, values)
         self._k = 0
         self._node = _Node(float(nav0.t), state0, bias0)
@@ -141,8 +149,7 @@ class GraphFuser:
         self._buf_w: list[np.ndarray] = []
         self._buf_f: list[np.ndarray] = []
         self._pim = self._new_pim()
-        self._comp_t = -np.inf
-        self._df_b = np.zeros(3)
+        self._comp = {"t": -np.inf, "df_b": np.zeros(3), "dw_b": np.zeros(3)}
         self._pred_cov_cache: tuple[float, FloatArray] | None = None
         self.innovations: list[Innovation] = []
 
@@ -192,12 +199,19 @@ class GraphFuser:
         return gtsam.PreintegratedCombinedMeasurements(self._params, self._node.bias)
 
     def _integrate(self, pim, node: _Node, t_end: float, dt: float, w: FloatArray, f: FloatArray, comp: dict) -> None:
+        """Preintegrate one sample compensated to the Earth-fixed frame L (dynamics ``dC_Lb = C_Lb [omega_Lb x]``,
+        ``dv_L = C_Lb f + g_L(r) - 2 omega_ie x v_L``): ``omega' = omega - C_bL omega_ie_L`` and
+        ``f' = f + C_bL (g_L(r) - g_L(0) - 2 omega_ie_L x v_L)``, with ``r, v_L, C_bL`` predicted and refreshed
+        every ``gravity_update_s``; GTSAM's own Coriolis option is left off (its rotation term is first order
+        over the whole interval)."""
         if t_end - comp["t"] >= self.gravity_update_s:
             pred = pim.predict(node.state, node.bias)
-            dg_L = self.frame.gravity_L(pred.position()) - self._g0_L
-            comp["df_b"] = pred.attitude().matrix().T @ dg_L
+            C_bL = pred.attitude().matrix().T
+            acc_L = self.frame.gravity_L(pred.position()) - self._g0_L - 2.0 * np.cross(self._w_ie_L, pred.velocity())
+            comp["df_b"] = C_bL @ acc_L
+            comp["dw_b"] = -(C_bL @ self._w_ie_L)
             comp["t"] = t_end
-        pim.integrateMeasurement(f + comp["df_b"], w, dt)
+        pim.integrateMeasurement(f + comp["df_b"], w + comp["dw_b"], dt)
 
     def _node_covariance(self, k: int) -> FloatArray:
         """Joint marginal of node k in GTSAM order [xi_R, xi_t, v, b_a, b_g] (stored) and in LAYOUT_15 (returned)."""
@@ -238,7 +252,7 @@ class GraphFuser:
             k = int(np.argmax(np.diff(imu.t) <= 0))
             raise InputError(f"GraphFuser.propagate: IMU time not increasing at sample {k + 1}: t={imu.t[k + 1]!r} s")
         check_time(float(imu.t[-1]), self._t, "GraphFuser.propagate")
-        comp = {"t": self._comp_t, "df_b": self._df_b}
+        comp = self._comp
         for k in range(len(imu)):
             t = float(imu.t[k])
             if t <= self._t + _TIME_TOL:
@@ -252,13 +266,14 @@ class GraphFuser:
             self._buf_w.append(w)
             self._buf_f.append(f)
             self._t = t
-        self._comp_t, self._df_b = comp["t"], comp["df_b"]
+        self._comp = comp
         self._pred_cov_cache = None
 
     def correct(self, fix: Fix, *, height_m: float | None = None, height_sigma_m: float | None = None) -> Innovation:
         """Add a node at ``fix.t`` with the IMU factor since the last node and, if the fix passes the NIS gate, a
         robust position factor; returns the innovation (rejected ones say why). Optional ``height_m`` (ellipsoidal,
-        m) with ``height_sigma_m`` constrains the vertical."""
+        m) with ``height_sigma_m`` constrains the vertical. After ``reset_after`` consecutive gate rejections the next fix is added anyway
+        (with its Huber kernel; ``extra["forced"]``), so that a graph that has lost track recovers."""
         problem = fix_problem(fix)
         if not problem and fix.t > self._t + 1e-6:
             problem = f"fix time {fix.t:.6f} s is after the last IMU time {self._t:.6f} s"
@@ -268,6 +283,7 @@ class GraphFuser:
             inn = rejected(fix, problem)
         else:
             inn = self._add_node(float(fix.t), fix, height_m, height_sigma_m)
+            self._n_rejected = 0 if inn.accepted else self._n_rejected + 1
         self.innovations.append(inn)
         return inn
 
@@ -281,7 +297,7 @@ class GraphFuser:
     def _add_node(self, t_new: float, fix: Fix | None, height_m: float | None, height_sigma_m: float | None):
         # split the buffered samples at the node time (a straddling sample is cut in two)
         pim_a = self._new_pim()
-        comp = {"t": -np.inf, "df_b": np.zeros(3)}
+        comp = {"t": -np.inf, "df_b": np.zeros(3), "dw_b": np.zeros(3)}
         rest: list[tuple[float, float, np.ndarray, np.ndarray]] = []
         t_prev = self._node.t
         for t, dt, w, f in zip(self._buf_t, self._buf_dt, self._buf_w, self._buf_f, strict=False):
@@ -310,7 +326,8 @@ class GraphFuser:
             cov_fix = np.asarray(fix.cov_ne, float)
             S = P_pred[0:2, 0:2] + cov_fix
             v = nis(r, S)
-            if self.gate.accepts(v):
+            forced = 0 < self.reset_after <= self._n_rejected and np.isfinite(v)
+            if self.gate.accepts(v) or forced:
                 C_nL = self.frame.C_nL(nav_pred.lat, nav_pred.lon)
                 h = float(height_m) if height_m is not None else nav_pred.h
                 sv = float(height_sigma_m) if height_sigma_m is not None else self.vertical_sigma_m
@@ -321,7 +338,8 @@ class GraphFuser:
                 gauss = gtsam.noiseModel.Gaussian.Covariance(C_nL.T @ cov_n @ C_nL)
                 model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_k), gauss)
                 g.add(gtsam.GPSFactor(X(k1), np.asarray(r_L, float), model))
-                inn = Innovation(float(fix.t), r, S, v, True, "", fix.source)
+                extra = {} if self.gate.accepts(v) else {"forced": 1.0}
+                inn = Innovation(float(fix.t), r, S, v, True, "", fix.source, extra)
             else:
                 inn = rejected(fix, f"NIS {v:.1f} above gate {self.gate.threshold:.1f}", r, S, v)
         self._update(g, vals)
@@ -339,10 +357,10 @@ class GraphFuser:
         self._buf_w = [x[2] for x in rest]
         self._buf_f = [x[3] for x in rest]
         self._pim = self._new_pim()
-        comp = {"t": -np.inf, "df_b": np.zeros(3)}
+        comp = {"t": -np.inf, "df_b": np.zeros(3), "dw_b": np.zeros(3)}
         for t, dt, w, f in rest:
             self._integrate(self._pim, self._node, t, dt, w, f, comp)
-        self._comp_t, self._df_b = comp["t"], comp["df_b"]
+        self._comp = comp
         self._pred_cov_cache = None
         return inn
 

@@ -11,7 +11,9 @@ the interval up to a fix), pushed through the unscented transform. Measurement: 
 2x2); with an optional height source ``z`` gains ``-(h_src - h_ins)`` and ``h(x)`` gains ``x[pos D]``.
 
 Gating: NIS ``y^T S^-1 y`` against the ``gate_probability`` chi-square quantile (2 dof, 3 with height); a rejected
-fix leaves the filter untouched and its :class:`Innovation` says why. Covariance: symmetrised, eigenvalues floored at
+fix leaves the filter untouched and its :class:`Innovation` says why. After ``reset_after`` consecutive gate
+rejections the next fix is applied with the navigation covariance inflated so that it sits on the gate (recorded as
+``extra["inflation"]``): a filter that has lost track recovers instead of rejecting every later fix. Covariance: symmetrised, eigenvalues floored at
 0 after each step, tiny jitter before the sigma-point Cholesky. Closed loop: after an accepted update the estimated
 errors are fed back (``C_nb <- exp(-[psi x]) C_nb``, position/velocity minus their errors, biases ``b <- b - db``)
 and the error state is reset to zero (the covariance is kept; the reset Jacobian is I to first order, Groves
@@ -67,6 +69,7 @@ class UkfFuser(InertialCore):
         cov_step_s: float = 1.0,
         buffer_s: float = 120.0,
         altitude_hold: float | None = None,
+        reset_after: int = 3,
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
@@ -75,6 +78,8 @@ class UkfFuser(InertialCore):
         self._ukf = UnscentedKalmanFilter(dim_x=_N, dim_z=2, dt=1.0, hx=_hx_ne, fx=_fx, points=self._points)
         self.gate_probability = float(gate_probability)
         self.gate = ChiSquareGate(self.gate_probability, 2)
+        self.reset_after = int(reset_after)
+        self._n_rejected = 0  # consecutive gate rejections
         self.innovations: list[Innovation] = []
         super().__init__(init, noise, cov_step_s=cov_step_s, buffer_s=buffer_s, altitude_hold=altitude_hold)
 
@@ -94,6 +99,10 @@ class UkfFuser(InertialCore):
         """Apply a position fix (north/east; with ``height_m``, ellipsoidal m, and ``height_sigma_m`` also the
         vertical) at ``fix.t``; returns the innovation (rejected ones say why)."""
         inn = self._correct(fix, height_m, height_sigma_m)
+        if inn.reason.startswith("NIS"):
+            self._n_rejected += 1
+        elif inn.accepted:
+            self._n_rejected = 0
         self.innovations.append(inn)
         return inn
 
@@ -141,7 +150,24 @@ class UkfFuser(InertialCore):
         gate = self.gate if dim == 2 else ChiSquareGate(self.gate_probability, dim)
         S_ne = S[:2, :2]
         v_ne = nis(y[:2], S_ne)  # reported: the north/east NIS (2 dof), comparable across fusers
-        if not gate.accepts(v):
+        forced = 0.0
+        if not gate.accepts(v) and 0 < self.reset_after <= self._n_rejected and np.isfinite(v):
+            # recovery: after `reset_after` consecutive rejections the filter, not the fixes, is taken to be wrong;
+            # inflate the navigation covariance until this fix sits on the gate, then apply it
+            forced = v / gate.threshold
+            k = slice(0, 9)
+            self._P[k, :] *= np.sqrt(forced)
+            self._P[:, k] *= np.sqrt(forced)
+            u.P = self._jitter(self._P)
+            u.predict(fx=_fx, Phi=np.eye(_N))
+            Zs = np.array([hx(s) for s in u.sigmas_f])
+            zp = u.Wm @ Zs
+            dZ = Zs - zp
+            S = (u.Wc[:, None] * dZ).T @ dZ + Rz
+            y = z - zp
+            v = nis(y, S)
+            S_ne = S[:2, :2]
+        elif not gate.accepts(v):
             self._replay(rest)
             return rejected(fix, f"NIS {v:.1f} above gate {gate.threshold:.1f} ({dim} dof)", y[:2], S_ne, v_ne)
         u._dim_z = dim
@@ -158,4 +184,8 @@ class UkfFuser(InertialCore):
         self._checkpoints.pop()
         self._checkpoint()
         self._replay(rest)
-        return Innovation(float(fix.t), y[:2], S_ne, v_ne, True, "", fix.source, {"nis_full": v, "nis_dof": float(dim)})
+        extra = {"nis_full": v, "nis_dof": float(dim)}
+        if forced:
+            extra["inflation"] = forced
+            v_ne = nis(y[:2], S_ne)
+        return Innovation(float(fix.t), y[:2], S_ne, v_ne, True, "", fix.source, extra)
