@@ -112,6 +112,19 @@ def test_demeaning_removes_a_constant_bias():
     assert not biased.available or np.hypot(*(local(fmap, biased.lat, biased.lon) - truth[-1])) > 2.0
 
 
+def test_distance_sampling_of_a_section():
+    from magnav_ins.aiding.matchers.likelihood import distance_sample
+
+    # a vehicle that stops (repeated position) and changes speed, along north; field = 2 * northing
+    dn = np.array([0.0, 0.5, 0.5, 0.5, 2.0, 4.0, 7.0]) - 7.0
+    de = np.zeros_like(dn)
+    z = (2.0 * dn)[:, None]
+    n2, e2, z2 = distance_sample(dn, de, z, 1.0)
+    assert n2 == pytest.approx(np.arange(-7.0, 0.5, 1.0))
+    assert z2[:, 0] == pytest.approx(2.0 * n2)  # linear field: interpolation is exact
+    assert np.all(e2 == 0.0)
+
+
 # ---------------------------------------------------------------------------------------------- Bayes grid
 def test_tail_sigma_of_gaussian_is_sigma():
     x = np.arange(-10.0, 10.0, 0.01)

@@ -84,7 +84,8 @@ class LikelihoodMatcher:
     Parameters (SI; field values in the map's unit): ``method`` "ml" | "mlr" | "abl"; ``ratio_threshold`` and
     ``min_distance_m`` (MLR); ``bin_size_m`` and ``peak_threshold`` (ABL); ``demean``, ``difference`` (section
     composition); ``search_window`` and ``window_sigma`` (search window = ``window_sigma`` prior sigmas, at least
-    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma; ``quantisation``: with the default resolution the scan step is refined (by
+    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma; ``distance_step_m`` re-samples the section every that many metres of
+    INS-travelled distance before matching (Shockley's distance-sampled readings; ``None`` = as recorded); ``quantisation``: with the default resolution the scan step is refined (by
     bilinear interpolation) until the RMS map gradient times the step is at most this many reading sigmas, and the
     remaining node error ``|grad|^2 step^2 / 12`` is added to the likelihood variance (0 = native grid only);
     ``min_variability`` flat-map cut-off in units of s; ``max_fix_sigma_m`` largest accepted fix 1-sigma (default
@@ -106,6 +107,7 @@ class LikelihoodMatcher:
     max_fix_sigma_m: float | None = None
     max_nodes: int = 2_000_000
     quantisation: float = 1.0
+    distance_step_m: float | None = None
     both_directions: bool = True
     track_sigma_m: float = 1.0
     name: str = ""
@@ -141,6 +143,8 @@ class LikelihoodMatcher:
         h_last = float(h[-1]) if np.isfinite(h[-1]) else None
         frame = make_frame(fmap, float(lat[-1]), float(lon[-1]))
         dn, de = frame.to_ne(lat, lon)
+        if self.distance_step_m is not None and len(z) > 1:
+            dn, de, z = distance_sample(dn, de, z, self.distance_step_m)
         step0 = self.resolution_m if self.resolution_m else spacing_of(fmap, 1.0)
         cov = np.asarray(window.cov_ne, dtype=float)
         cov_last = cov[-1] if cov.ndim == 3 else cov
@@ -367,6 +371,23 @@ def _bin_mass(p: FloatArray, surf: Surface, bin_size_m: float) -> FloatArray:
     tree = cKDTree(pts)
     groups = tree.query_ball_point(pts, r=bin_size_m / 2.0)
     return np.array([p[g].sum() for g in groups])
+
+
+def distance_sample(
+    dn: FloatArray, de: FloatArray, z: FloatArray, step_m: float
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Distance-sampled section (Shockley 003 sec. 4.4): readings ``z`` (N, c) at INS positions ``(dn, de)`` m
+    re-interpolated every ``step_m`` metres of travelled distance, counted back from the last reading (which is
+    kept). Readings taken while standing still collapse to one. Returns the new positions and readings."""
+    seg = np.hypot(np.diff(dn), np.diff(de))
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    keep = np.concatenate([[True], seg > 1e-9])
+    s, dn, de, z = s[keep], dn[keep], de[keep], z[keep]
+    if s.size < 2:
+        return dn[-1:], de[-1:], z[-1:]
+    s_new = s[-1] - np.arange(0.0, s[-1] + 1e-9, step_m)[::-1]
+    zi = np.column_stack([np.interp(s_new, s, z[:, c]) for c in range(z.shape[1])])
+    return np.interp(s_new, s, dn), np.interp(s_new, s, de), zi
 
 
 def _gradient_rms(
