@@ -38,14 +38,15 @@ def nis(residual: ArrayLike, S: ArrayLike) -> float:
 
 @dataclass(frozen=True)
 class ChiSquareGate:
-    """Accept a residual when its NIS is inside the ``probability`` chi-square quantile for ``dof`` dof."""
+    """Accept a residual when its NIS is inside the ``probability`` chi-square quantile for ``dof`` dof;
+    ``probability=None`` is no gate (every finite NIS passes)."""
 
-    probability: float = 0.999
+    probability: float | None = 0.999
     dof: int = 2
 
     @property
     def threshold(self) -> float:
-        return chi2_threshold(self.dof, self.probability)
+        return float("inf") if self.probability is None else chi2_threshold(self.dof, self.probability)
 
     def accepts(self, nis_value: float) -> bool:
         """True when ``nis_value`` is finite and at most the threshold."""

@@ -64,7 +64,7 @@ class GraphFuser:
     """GTSAM factor-graph fuser (iSAM2 online; :meth:`smooth` runs batch LM over the whole graph).
 
     ``init``: initial state and its LAYOUT_15 covariance; ``noise``: IMU noise (continuous-time densities and bias
-    sigmas); ``gate_probability``: chi-square gate on the 2-dof north/east NIS; ``huber_k``: Huber threshold in
+    sigmas); ``gate_probability``: chi-square gate on the 2-dof north/east NIS (None: no gate); ``huber_k``: Huber threshold in
     whitened units; ``vertical_sigma_m``: sigma of the vertical component of a fix without a height source (the
     measured height is then the predicted one); ``factorization``: "QR" (default; GTSAM's Cholesky reports an
     indeterminate system on poorly constrained graphs) or "CHOLESKY"; ``gravity_update_s``: period of the
@@ -78,7 +78,7 @@ class GraphFuser:
         init: NavEstimate,
         noise: ImuNoise,
         *,
-        gate_probability: float = 0.9999,
+        gate_probability: float | None = 0.9999,
         huber_k: float = 3.0,
         vertical_sigma_m: float = 1000.0,
         factorization: str = "QR",

@@ -55,7 +55,7 @@ def _hx_ned(x: np.ndarray) -> np.ndarray:
 
 class UkfFuser(InertialCore):
     """Error-state UKF fuser (see the module docstring). ``init``: initial INS state and its 15x15 covariance;
-    ``noise``: IMU noise; ``gate_probability``: chi-square gate; ``cov_step_s``: longest covariance step (s);
+    ``noise``: IMU noise; ``gate_probability``: chi-square gate (None: no gate, e.g. for trusted GNSS fixes); ``cov_step_s``: longest covariance step (s);
     ``buffer_s``: how far back a late fix may be applied (s); ``altitude_hold``: clamp the INS height (m)."""
 
     name = "ukf"
@@ -65,7 +65,7 @@ class UkfFuser(InertialCore):
         init: NavEstimate,
         noise: ImuNoise,
         *,
-        gate_probability: float = 0.9999,
+        gate_probability: float | None = 0.9999,
         cov_step_s: float = 1.0,
         buffer_s: float = 120.0,
         altitude_hold: float | None = None,
@@ -76,7 +76,7 @@ class UkfFuser(InertialCore):
     ) -> None:
         self._points = MerweScaledSigmaPoints(_N, alpha=alpha, beta=beta, kappa=kappa)
         self._ukf = UnscentedKalmanFilter(dim_x=_N, dim_z=2, dt=1.0, hx=_hx_ne, fx=_fx, points=self._points)
-        self.gate_probability = float(gate_probability)
+        self.gate_probability = None if gate_probability is None else float(gate_probability)
         self.gate = ChiSquareGate(self.gate_probability, 2)
         self.reset_after = int(reset_after)
         self._n_rejected = 0  # consecutive gate rejections
