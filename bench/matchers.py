@@ -6,7 +6,7 @@ machine inflates wall times):
 
 * ``ml_full_map_scan``: one scalar reading against every node of a 1000 x 1000 local grid (search window off,
   native nodes; target < 20 ms);
-* ``ml_window_section``: a 10-reading section in a 4-sigma search window (prior sigma 50 m, 10 m grid, the
+* ``ml_window_section``: MLR on a 10-reading section in a 4-sigma search window (prior sigma 50 m, 10 m grid, the
   quantisation-aware default resolution);
 * ``pmht_batch``: PMHT-MM with T = 30 scans, 20 candidates, 15 EM iterations forced (tolerance 0) on a 1000 x 1000
   gravity grid, prior sigma 100 m (3-sigma gates of 61 x 61 nodes; target < 20 ms);

@@ -112,6 +112,27 @@ def test_demeaning_removes_a_constant_bias():
     assert not biased.available or np.hypot(*(local(fmap, biased.lat, biased.lon) - truth[-1])) > 2.0
 
 
+@pytest.mark.parametrize(("demean", "difference"), [(False, False), (True, False), (False, True), (True, True)])
+def test_compiled_section_scan_equals_array_scan(monkeypatch, demean, difference):
+    import magnav_ins.aiding.matchers.likelihood as lk
+
+    rng = np.random.default_rng(9)
+    fmap = random_field_map((120, 120), 5.0, 40.0, 100.0, rng, kind=KIND_V, origin=ORIGIN)
+    truth = np.array([300.0, 280.0]) + 4.0 * np.arange(6)[:, None] * np.array([0.8, 0.6])
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 2.0, (6, 3))
+    w = make_window(fmap, np.arange(6.0), truth, z, 2.0, KIND_V, np.array([7.0, -5.0]), np.eye(2) * 100, np.zeros(2))
+    m = LikelihoodMatcher(demean=demean, difference=difference)
+    fast = m.surface(w, fmap)
+    monkeypatch.setattr(lk, "_local_grid", lambda fmap, frame: None)
+    slow = m.surface(w, fmap)
+    assert fast.shape == slow.shape and fast.sigma2 == pytest.approx(slow.sigma2)
+    ok = np.isfinite(slow.logl)
+    assert np.array_equal(ok, np.isfinite(fast.logl))
+    assert fast.logl[ok] == pytest.approx(slow.logl[ok], rel=1e-9, abs=1e-9)
+    assert fast.variability == pytest.approx(slow.variability, rel=1e-12)
+
+
 def test_distance_sampling_of_a_section():
     from magnav_ins.aiding.matchers.likelihood import distance_sample
 

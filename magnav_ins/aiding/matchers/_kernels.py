@@ -178,3 +178,76 @@ def grid_gradient_rms(values: FloatArray, dn: float, de: float) -> float:
     if cn == 0 or ce == 0:
         return np.nan
     return np.sqrt(sn / cn + se / ce)
+
+
+@nb.njit(cache=True)
+def section_loglik(
+    values: FloatArray,
+    y0: float,
+    dy: float,
+    x0: float,
+    dx: float,
+    pos: FloatArray,
+    z: FloatArray,
+    n_ax: FloatArray,
+    e_ax: FloatArray,
+    s2: float,
+    demean: bool,
+    difference: bool,
+) -> FloatArray:
+    """Log-likelihood of a section of readings slid rigidly over a local grid (Shockley sec. 4.5), bilinear map
+    values read straight from the grid ``values`` (ny, nx, c) with axes ``y0 + i dy`` (north), ``x0 + j dx``
+    (east). ``pos`` (nz, 2) are the readings' INS positions in the grid's axes, ``z`` (nz, c) the readings; the
+    candidate offsets are ``n_ax`` x ``e_ax``. ``difference`` uses successive differences, ``demean`` removes the
+    section means (in that order); ``s2`` is the variance of the (differenced) residual. ``-inf`` off the grid."""
+    ny, nx, c = values.shape
+    nz = pos.shape[0]
+    ni, nj = n_ax.shape[0], e_ax.shape[0]
+    out = np.empty((ni, nj))
+    buf = np.empty((nz, c))
+    res = np.empty((nz, c))
+    for a in range(ni):
+        for b in range(nj):
+            ok = True
+            for k in range(nz):
+                fy = (pos[k, 0] + n_ax[a] - y0) / dy
+                fx = (pos[k, 1] + e_ax[b] - x0) / dx
+                if not (fy >= 0.0 and fy <= ny - 1 and fx >= 0.0 and fx <= nx - 1):
+                    ok = False
+                    break
+                i = min(int(fy), ny - 2)
+                j = min(int(fx), nx - 2)
+                ty = fy - i
+                tx = fx - j
+                for m in range(c):
+                    v = (
+                        (1.0 - ty) * (1.0 - tx) * values[i, j, m]
+                        + (1.0 - ty) * tx * values[i, j + 1, m]
+                        + ty * (1.0 - tx) * values[i + 1, j, m]
+                        + ty * tx * values[i + 1, j + 1, m]
+                    )
+                    buf[k, m] = v
+                    res[k, m] = z[k, m] - v
+            if not ok:
+                out[a, b] = -np.inf
+                continue
+            n_use = nz
+            if difference and nz > 1:
+                for k in range(nz - 1):
+                    for m in range(c):
+                        res[k, m] = res[k + 1, m] - res[k, m]
+                n_use = nz - 1
+            if demean and n_use > 1:
+                for m in range(c):
+                    mu = 0.0
+                    for k in range(n_use):
+                        mu += res[k, m]
+                    mu /= n_use
+                    for k in range(n_use):
+                        res[k, m] -= mu
+            acc = 0.0
+            for k in range(n_use):
+                for m in range(c):
+                    acc += res[k, m] * res[k, m]
+            out[a, b] = -0.5 * acc / s2 if np.isfinite(acc) else -np.inf
+    return out

@@ -39,8 +39,9 @@ from scipy import ndimage
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
-from ._kernels import grid_far_max, grid_moments, grid_scan1, grid_variability
+from ._kernels import grid_far_max, grid_moments, grid_scan1, grid_variability, section_loglik
 from ._local import (
+    MapFrame,
     WorkFrame,
     feature_variability,
     make_frame,
@@ -194,6 +195,21 @@ class LikelihoodMatcher:
                 m = m_last
         else:
             n_ax, e_ax, step = window_axes(half_n, half_e, step0, max(self.max_nodes // max(nz, 1), 9))
+            grid = _local_grid(fmap, frame)
+            if grid is not None:  # compiled section scan with bilinear reads on the local grid
+                if np.isfinite(g_rms):
+                    s2 = s2 + g_rms**2 * step**2 / 12.0
+                v3, y0, dy, x0, dx = grid
+                pos = np.column_stack([dn + frame.n0, de + frame.e0])  # type: ignore[union-attr]
+                s2r = 2.0 * s2 if (self.difference and nz > 1) else s2
+                l2 = section_loglik(
+                    v3, y0, dy, x0, dx, pos, np.ascontiguousarray(z), n_ax, e_ax, s2r, self.demean, self.difference
+                )
+                last = frame.sample(*np.meshgrid(n_ax, e_ax, indexing="ij"), h_last)
+                last = np.ascontiguousarray(last.reshape(n_ax.size, e_ax.size, ncomp))
+                ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
+                variability = float(grid_variability(last, ic, jc))
+                return Surface(frame, l2.ravel(), n_ax, e_ax, l2.shape, step, variability, s2r, (half_n, half_e))
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m = frame.sample(dn[:, None, None] + gn[None], de[:, None, None] + ge[None], h_last)
             m = m.reshape(nz, gn.size, ncomp)
@@ -371,6 +387,18 @@ def _bin_mass(p: FloatArray, surf: Surface, bin_size_m: float) -> FloatArray:
     tree = cKDTree(pts)
     groups = tree.query_ball_point(pts, r=bin_size_m / 2.0)
     return np.array([p[g].sum() for g in groups])
+
+
+def _local_grid(fmap: FieldMap, frame: WorkFrame) -> tuple[FloatArray, float, float, float, float] | None:
+    """(values (ny, nx, c), n0, dn, e0, de) of a local-frame grid map read through a :class:`MapFrame`, else None."""
+    if not isinstance(frame, MapFrame) or getattr(fmap, "frame", None) != "local" or not hasattr(fmap, "axes"):
+        return None
+    ya, xa = fmap.axes  # type: ignore[attr-defined]
+    if ya.size < 2 or xa.size < 2:
+        return None
+    v = np.asarray(fmap.values, dtype=float)  # type: ignore[attr-defined]
+    v3 = np.ascontiguousarray(v.reshape(v.shape[0], v.shape[1], -1))
+    return v3, float(ya[0]), float(ya[1] - ya[0]), float(xa[0]), float(xa[1] - xa[0])
 
 
 def distance_sample(
