@@ -355,6 +355,22 @@ def test_tlog_time_going_back(tmp_path, capsys):
     _assert_fails(capsys, tmp_path, p, "--init=1,2,3,4", match="message HIGHRES_IMU row 4")
 
 
+def test_tlog_duplicates_dropped_as_the_bridge_does(tmp_path, capsys):
+    """A message logged twice is dropped (the bridge drops duplicate timestamps); the same time with different
+    values is an error."""
+    from magnav_ins.mavlink.link import ImuMessage, write_tlog
+
+    f = np.array([0.0, 0.0, -9.8])
+    msgs = [ImuMessage(1.0 + 0.01 * k, np.zeros(3), f, None, "HIGHRES_IMU", 1, 1) for k in range(5)]
+    p = tmp_path / "dup.tlog"
+    write_tlog(p, [*msgs[:3], msgs[2], *msgs[3:]])
+    rec = read_log(p)
+    assert len(rec.imu) == 5 and rec.notes == ("1 duplicated HIGHRES_IMU messages dropped (as the bridge drops them)",)
+    clash = ImuMessage(1.02, np.ones(3), f, None, "HIGHRES_IMU", 1, 1)
+    write_tlog(p, [*msgs[:3], clash, *msgs[3:]])
+    _assert_fails(capsys, tmp_path, p, "--init=1,2,3,4", match="message HIGHRES_IMU row 4")
+
+
 def test_bad_options(sim, tmp_path, capsys):
     _assert_fails(capsys, tmp_path, sim["tlog"], "--init=1,2,3", match="--init")
     _assert_fails(capsys, tmp_path, sim["tlog"], "--date", "June", match="--date")

@@ -96,6 +96,7 @@ def format_summary(s: dict, rec, map_spec: str, date: str, date_source: str) -> 
             lines.append("  rejected by the fuser: " + "; ".join(f"{r} x{n}" for r, n in rej.items()))
     if not s["map_covers_start"]:
         lines.append(f"  note: the map {map_spec} does not cover the start position: the INS ran unaided")
+    lines += [f"  note: {n}" for n in rec.notes]
     if rec.mag_t.size == 0:
         lines.append("  note: the log holds no magnetometer data: the INS ran unaided")
     e = s.get("gnss_error_m")

@@ -160,7 +160,7 @@ class AttitudeTrack:
 class LogRecording:
     """A recording in SI: ``imu`` (body FRD), magnetometer ``mag_t`` (M,) s and ``mag_b_nt`` (M,3) nT body (empty
     when the log has none), optional ``gnss`` and ``attitude``; ``fmt`` "ulog" | "tlog" | "csv"; ``sources`` says
-    which topic or message each part came from (for messages)."""
+    which topic or message each part came from (for messages); ``notes`` what the reader dropped and why."""
 
     path: Path
     fmt: str
@@ -170,6 +170,7 @@ class LogRecording:
     gnss: GnssTrack | None = None
     attitude: AttitudeTrack | None = None
     sources: dict[str, str] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()
 
 
 def _check_series(path: Path, what: str, t: FloatArray, values: dict[str, FloatArray], *, strict: bool) -> None:
@@ -296,10 +297,17 @@ def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
     if not imu_rows:
         raise InputError(f"{p}: no IMU messages (HIGHRES_IMU, SCALED_IMU or RAW_IMU) in the telemetry log")
     im = np.asarray(imu_rows, float)
+    mg = np.asarray(mag_rows, float).reshape(-1, 4)
+    notes: list[str] = []
+    dup = np.concatenate([[False], np.all(im[1:] == im[:-1], axis=1)])  # the same message logged twice
+    if dup.any():
+        im = im[~dup]
+        if len(mg):
+            mg = mg[np.concatenate([[True], np.any(mg[1:] != mg[:-1], axis=1)])]
+        notes.append(f"{int(dup.sum())} duplicated {imu_source} messages dropped (as the bridge drops them)")
     what = f"message {imu_source}"
     _check_series(p, what, im[:, 0], {"gyro": im[:, 1:4], "accel": im[:, 4:7]}, strict=True)
     imu = ImuBatch(im[:, 0], im[:, 1:4], im[:, 4:7])
-    mg = np.asarray(mag_rows, float).reshape(-1, 4)
     sources = {"imu": imu_source}
     if len(mg):
         sources["mag"] = imu_source
@@ -315,7 +323,7 @@ def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
         _check_series(p, "message ATTITUDE", at[:, 0], {"attitude": at[:, 1:4]}, strict=False)
         attitude = AttitudeTrack(at[:, 0], q_nb_from_euler(at[:, 1], at[:, 2], at[:, 3]).reshape(-1, 4))
         sources["attitude"] = "ATTITUDE"
-    return LogRecording(p, "tlog", imu, mg[:, 0], mg[:, 1:4], gnss, attitude, sources)
+    return LogRecording(p, "tlog", imu, mg[:, 0], mg[:, 1:4], gnss, attitude, sources, tuple(notes))
 
 
 def _read_csv(p: Path) -> LogRecording:
