@@ -19,8 +19,8 @@ fact scales its between-bias sigma by sqrt(cumulative sample count), about 0.02-
 0.265 m, the example's 1/0.07 precision) with the GPS height as height aid (same sigma), none in
 ``--outage START:DURATION`` (s from the start); no NIS gate and a nearly Gaussian Huber (k = 100) by default, since
 these are GNSS fixes, not map matches. Errors: horizontal distance to EVERY GPS epoch after the start, of the online
-(causal) estimate; for the graph also the batch-LM smoothed solution with a keyframe node at every GPS epoch, which
-is what the peer reports: GTSAM's own ``IMUKittiExampleGPS.py`` (run from the installed wheel, iSAM2 switched to QR;
+(causal) estimate, and a smoothed one: for the graph the batch-LM solution with a keyframe node at every GPS epoch,
+for the UKF its Rauch-Tung-Striebel smoother (``UkfFuser.smooth``). The peer reports a smoothed figure: GTSAM's own ``IMUKittiExampleGPS.py`` (run from the installed wheel, iSAM2 switched to QR;
 its final iSAM2 estimate, smoothed).
 
     python bench/kitti_fusion.py --json [--fix-every 10] [--outage 100:30] [--no-peer]
@@ -140,11 +140,12 @@ def run(
     e = horizontal_error_m(np.array(est_lat), np.array(est_lon), data["lat"][i0 + 1 :], data["lon"][i0 + 1 :])
     out = {"rms_horizontal_m": float(np.sqrt(np.mean(e**2))), "max_horizontal_m": float(e.max()),
            "wall_s": round(wall, 3), "epochs": len(e), "rejected_fixes": int(rejections)}  # fmt: skip
-    if keyframes:
+    if keyframes or getattr(fuser, "_history", None) is not None:
         t0 = time.perf_counter()
-        tr = fuser.node_trajectory(smoothed=True)
-        k = np.searchsorted(t_gps, tr.t - 1e-6)
-        es = horizontal_error_m(tr.lat[1:], tr.lon[1:], data["lat"][k[1:]], data["lon"][k[1:]])
+        tr = fuser.node_trajectory(smoothed=True) if keyframes else fuser.smooth()[0]
+        k = np.clip(np.searchsorted(t_gps, tr.t - 1e-6), 0, len(t_gps) - 1)
+        at_epoch = (np.abs(t_gps[k] - tr.t) < 1e-6) & (tr.t > t_gps[i0] + 1e-6)
+        es = horizontal_error_m(tr.lat[at_epoch], tr.lon[at_epoch], data["lat"][k[at_epoch]], data["lon"][k[at_epoch]])
         out["smoothed"] = {"rms_horizontal_m": float(np.sqrt(np.mean(es**2))), "max_horizontal_m": float(es.max()),
                            "wall_s": round(wall + time.perf_counter() - t0, 3), "epochs": len(es)}  # fmt: skip
     return out
@@ -181,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
         opts = {} if name == "free_inertial" else {"gate_probability": a.gate}
         if name == "graph":
             opts["huber_k"] = a.huber_k
+        if name == "ukf":
+            opts["keep_history"] = True  # for the RTS-smoothed figure
         out["fusers"][name] = run(make_fuser(name, init, nz, **opts), data, i0, a.fix_every, outage, name == "graph")
     if not a.no_peer:
         from magnav_ins.aiding.fusion.graph import kitti_example_peer

@@ -208,3 +208,28 @@ def test_bad_input_is_rejected_or_refused(kind: str) -> None:
         fuser.propagate(ImuBatch(np.array([t + 0.1]), np.full((1, 3), np.nan), imu.accel_b[:1]))
     est = fuser.estimate()  # still usable
     assert np.all(np.isfinite(est.P)) and np.isfinite(est.nav.lat)
+
+
+def test_ukf_rts_smoother_beats_the_filter() -> None:
+    traj, _ = truth()
+    init, imu, fixes = run_inputs(4)
+    fuser = make_fuser("ukf", init, noise(), keep_history=True)
+    i = 0
+    filt = []
+    for fix, h in fixes:
+        j = int(np.searchsorted(imu.t, fix.t + 1e-9, side="right"))
+        fuser.propagate(imu.slice(i, j))
+        i = j
+        fuser.correct(fix, height_m=h, height_sigma_m=H_SIGMA)
+    hist_t = np.array([h[0] for h in fuser._history])
+    filt = np.array([nav_error(h[5], traj.at(int(np.argmin(np.abs(traj.t - h[0])))))[:2] for h in fuser._history])
+    sm, Ps = fuser.smooth()
+    assert np.allclose(sm.t, hist_t) and Ps.shape == (len(hist_t), 15, 15)
+    smo = np.array([nav_error(sm.at(k), traj.at(int(np.argmin(np.abs(traj.t - sm.t[k])))))[:2] for k in range(len(sm))])
+    rms_f = np.sqrt(np.mean(np.sum(filt[20:] ** 2, axis=1)))
+    rms_s = np.sqrt(np.mean(np.sum(smo[20:] ** 2, axis=1)))
+    assert rms_s < 0.8 * rms_f, (rms_s, rms_f)
+    # smoothed covariance never above the filtered one, and consistent with the smoothed errors
+    assert np.all(Ps[:, 0, 0] <= np.array([h[3][0, 0] for h in fuser._history]) * (1 + 1e-9))
+    nees = np.array([e @ np.linalg.solve(P[:2, :2], e) for e, P in zip(smo, Ps, strict=True)])
+    assert 0.5 < nees[20:].mean() < 4.0

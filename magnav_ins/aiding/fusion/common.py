@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...core.errors import InputError
 from ...core.frames import C_en, geodetic_to_ned, latlon_to_meters, ned_to_geodetic
-from ...core.types import Fix, ImuBatch, Innovation, NavEstimate, NavState
+from ...core.types import Fix, ImuBatch, Innovation, NavEstimate, NavState, NavTrajectory
 from ...ins.earth import gravity_n
 
 FloatArray = NDArray[np.float64]
@@ -226,6 +226,7 @@ class InertialCore:
         cov_step_s: float = 1.0,
         buffer_s: float = 120.0,
         altitude_hold: float | None = None,
+        keep_history: bool = False,
     ) -> None:
         from ...ins.strapdown import StrapdownStepper
 
@@ -250,6 +251,23 @@ class InertialCore:
         self._n_dropped = 0  # samples dropped from the front of the buffer
         self._checkpoints: list[tuple] = []
         self._checkpoint()
+        # smoother history, one entry per covariance step: [t, Phi (from the previous step), P-, P+, dx, nav+, b_a, b_g]
+        self._history: list[list] | None = (
+            [
+                [
+                    self.t,
+                    None,
+                    self._P.copy(),
+                    self._P.copy(),
+                    np.zeros(15),
+                    self._stepper.nav,
+                    self._b_a.copy(),
+                    self._b_g.copy(),
+                ]
+            ]  # fmt: skip
+            if keep_history
+            else None
+        )
 
     # ------------------------------------------------------------------------------------------- internals
     @property
@@ -292,6 +310,9 @@ class InertialCore:
         F, G, Qc = system_matrices(nav.lat, nav.h, nav.v_n, C_nb_from_q(nav.q_nb), f_b, self.noise)
         Phi, Qd = discretize_fast(F, G, Qc, dt)
         self._predict_cov(Phi, Qd)
+        if self._history is not None:
+            self._history.append([self.t, Phi, self._P.copy(), self._P.copy(), np.zeros(15), self._stepper.nav,
+                                  self._b_a.copy(), self._b_g.copy()])  # fmt: skip
         self._t_cov = self.t
         self._f_sum = np.zeros(3)
         self._f_dt = 0.0
@@ -322,6 +343,9 @@ class InertialCore:
         self._stepper.reset(nav)
         self._P, self._b_a, self._b_g = P.copy(), b_a.copy(), b_g.copy()
         self._t_cov = t_c
+        if self._history is not None:
+            while len(self._history) > 1 and self._history[-1][0] > t_c + 1e-9:
+                self._history.pop()
         self._f_sum = np.zeros(3)
         self._f_dt = 0.0
         self._checkpoint()
@@ -372,3 +396,48 @@ class InertialCore:
     def bias(self) -> tuple[FloatArray, FloatArray]:
         """Current accelerometer (m/s^2) and gyro (rad/s) bias estimates, body FRD."""
         return self._b_a.copy(), self._b_g.copy()
+
+    def _record_update(self, dx: FloatArray) -> None:
+        """Mark the last covariance step as updated by ``dx`` (error estimate before the reset)."""
+        if self._history is not None:
+            h = self._history[-1]
+            h[3], h[4], h[5], h[6], h[7] = (
+                self._P.copy(),
+                dx.copy(),
+                self._stepper.nav,
+                self._b_a.copy(),
+                self._b_g.copy(),
+            )
+
+    def smooth(self) -> tuple[NavTrajectory, FloatArray]:
+        """Rauch-Tung-Striebel smoothing of the recorded run (``keep_history=True``), in closed-loop error-state
+        form: with ``e`` the error of the filter's corrected state at each covariance step,
+        ``e_s(k) = C_k (e_s(k+1) + dx_{k+1})``, ``C_k = P+_k Phi_k^T (P-_{k+1})^-1``,
+        ``P_s(k) = P+_k + C_k (P_s(k+1) - P-_{k+1}) C_k^T`` (Rauch, Tung & Striebel 1965; ``dx`` is the update's
+        error estimate before its reset, zero without a fix). Returns the smoothed states at the step times and
+        their covariances (N,15,15)."""
+        from ...ins.error_model import apply_error
+
+        if self._history is None:
+            raise InputError("smooth(): construct the fuser with keep_history=True")
+        H = self._history
+        n = len(H)
+        e = np.zeros(15)
+        Ps = H[-1][3].copy()
+        out_nav = [H[-1][5]]
+        out_P = [Ps]
+        for k in range(n - 2, -1, -1):
+            Phi, Pm1, dx1 = H[k + 1][1], H[k + 1][2], H[k + 1][4]
+            Pp = H[k][3]
+            C = np.linalg.solve(Pm1.T, (Pp @ Phi.T).T).T  # Pp Phi^T Pm1^-1
+            e = C @ (e + dx1)
+            Ps = symmetrise(Pp + C @ (Ps - Pm1) @ C.T, 0.0)
+            out_nav.append(apply_error(H[k][5], -e[:9]))
+            out_P.append(Ps)
+        out_nav.reverse()
+        out_P.reverse()
+        traj = NavTrajectory(
+            np.array([x.t for x in out_nav]), np.array([x.lat for x in out_nav]), np.array([x.lon for x in out_nav]),
+            np.array([x.h for x in out_nav]), np.array([x.v_n for x in out_nav]), np.array([x.q_nb for x in out_nav]),
+        )  # fmt: skip
+        return traj, np.array(out_P)

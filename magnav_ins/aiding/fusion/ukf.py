@@ -56,7 +56,8 @@ def _hx_ned(x: np.ndarray) -> np.ndarray:
 class UkfFuser(InertialCore):
     """Error-state UKF fuser (see the module docstring). ``init``: initial INS state and its 15x15 covariance;
     ``noise``: IMU noise; ``gate_probability``: chi-square gate (None: no gate, e.g. for trusted GNSS fixes); ``cov_step_s``: longest covariance step (s);
-    ``buffer_s``: how far back a late fix may be applied (s); ``altitude_hold``: clamp the INS height (m)."""
+    ``buffer_s``: how far back a late fix may be applied (s); ``altitude_hold``: clamp the INS height (m);
+    ``keep_history``: record every covariance step for :meth:`smooth` (RTS smoother, offline)."""
 
     name = "ukf"
 
@@ -70,6 +71,7 @@ class UkfFuser(InertialCore):
         buffer_s: float = 120.0,
         altitude_hold: float | None = None,
         reset_after: int = 3,
+        keep_history: bool = False,
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
@@ -81,7 +83,14 @@ class UkfFuser(InertialCore):
         self.reset_after = int(reset_after)
         self._n_rejected = 0  # consecutive gate rejections
         self.innovations: list[Innovation] = []
-        super().__init__(init, noise, cov_step_s=cov_step_s, buffer_s=buffer_s, altitude_hold=altitude_hold)
+        super().__init__(
+            init,
+            noise,
+            cov_step_s=cov_step_s,
+            buffer_s=buffer_s,
+            altitude_hold=altitude_hold,
+            keep_history=keep_history,
+        )
 
     def _jitter(self, P: np.ndarray) -> np.ndarray:
         return symmetrise(P, 1e-15 * max(1.0, float(np.trace(P)) / _N))
@@ -180,6 +189,7 @@ class UkfFuser(InertialCore):
         self._b_a = self._b_a - dx[9:12]
         self._b_g = self._b_g - dx[12:15]
         u.x = np.zeros(_N)
+        self._record_update(dx)
         # the corrected state becomes the checkpoint at the fix time
         self._checkpoints.pop()
         self._checkpoint()
