@@ -152,3 +152,39 @@ def test_bad_input_and_configuration() -> None:
         pipe.push_reading(float(imu.t[1]), float("nan"))
     with pytest.raises(ConfigError):
         make_fuser("kalman", init, nz)
+
+
+class NoisyTruthRecursive:
+    """Test-only recursive matcher: keeps the readings' times; ``to_fix`` = truth at the last one + noise."""
+
+    name = "noisy-truth-recursive"
+
+    def __init__(self, traj) -> None:
+        self.inner = NoisyTruthMatcher(traj)
+        self.calls = {"initiate": 0, "predict": 0, "update": 0}
+
+    def initiate(self, prior: NavEstimate, rng: np.random.Generator):
+        self.calls["initiate"] += 1
+        return {"t": prior.nav.t}
+
+    def predict(self, state, prior: NavEstimate):
+        self.calls["predict"] += 1
+        return {"t": prior.nav.t}
+
+    def update(self, state, readings: FieldReadings, fmap):
+        self.calls["update"] += 1
+        return {"t": float(readings.t[-1])}
+
+    def to_fix(self, state) -> Fix:
+        win = MatchWindow(FieldReadings(np.array([state["t"]]), np.zeros(1), 1.0, FieldKind.GRAVITY_DISTURBANCE_MGAL),
+                          np.zeros(1), np.zeros(1), np.zeros(1), np.zeros((1, 2, 2)), np.zeros((1, 2)))  # fmt: skip
+        return self.inner.match(win, None)
+
+
+def test_recursive_matcher_loop() -> None:
+    traj, imu, init, nz, readings = scenario()
+    m = NoisyTruthRecursive(traj)
+    res = Pipeline(make_fuser("ukf", init, nz), m, FlatMap(), match_every=10).run(imu.slice(0, 601), readings)
+    n = int(np.sum(readings.t <= imu.t[600]))
+    assert m.calls == {"initiate": 1, "predict": n - 1, "update": n}
+    assert len(res.fixes) == n // 10 and all(inn.accepted for inn in res.innovations)
