@@ -66,6 +66,9 @@ US_TO_S = 1e-6
 #: seconds of specific force averaged to level the INS when the log has no attitude (the vehicle must be still
 #: or in steady flight over this span)
 LEVELLING_S = 1.0
+#: initial 1-sigmas with --init: roll/pitch levelled from the specific force (rad), a heading given by hand (rad)
+INIT_TILT_SIGMA_RAD = 0.01
+INIT_YAW_SIGMA_RAD = 0.05
 
 
 # ------------------------------------------------------------------------------------------------ the factory
@@ -444,23 +447,26 @@ def initial_state(
 
     ``init`` (lat, lon rad, h m ellipsoidal, yaw rad): position and heading given; roll and pitch from the log's
     attitude if any (else levelled from the specific force); velocity from the log's GNSS if any (else at rest);
-    starts at the first IMU sample. Without ``init`` the log must hold GNSS and attitude: starts at the first IMU
+    starts at the first IMU sample (the pipeline then gets wider initial attitude sigmas,
+    :data:`INIT_TILT_SIGMA_RAD` when levelled and :data:`INIT_YAW_SIGMA_RAD`). Without ``init`` the log must hold GNSS and attitude: starts at the first IMU
     sample at or after both. Missing both -> :class:`ConfigError` saying which option to add."""
     imu = rec.imu
     if init is not None:
         k0 = 0
         t0 = float(imu.t[0])
         lat, lon, h, yaw = init
+        source = "--init"
         if rec.attitude is not None and rec.attitude.t[0] <= t0 + 1.0:
             from ..core.frames import euler_from_q_nb
 
             roll, pitch, _ = (float(x) for x in euler_from_q_nb(rec.attitude.q_nb[_nearest(rec.attitude.t, t0)]))
         else:
             roll, pitch = _level(imu, 0)
+            source = "--init, levelled"
         v_n = np.zeros(3)
         if rec.gnss is not None and abs(rec.gnss.t[_nearest(rec.gnss.t, t0)] - t0) < 1.0:
             v_n = rec.gnss.v_n[_nearest(rec.gnss.t, t0)]
-        return NavState(t0, lat, lon, h, v_n, q_nb_from_euler(roll, pitch, yaw)), k0, "--init"
+        return NavState(t0, lat, lon, h, v_n, q_nb_from_euler(roll, pitch, yaw)), k0, source
     missing = []
     if rec.gnss is None:
         missing.append(f"no GNSS position ({'vehicle_gps_position' if rec.fmt == 'ulog' else 'GLOBAL_POSITION_INT'})")
@@ -513,7 +519,12 @@ def replay(
         )
     nav0, k0, init_source = initial_state(rec, init)
     if pipeline_factory is None:
-        pipe = make_online_pipeline(nav0, init_sigma_m, fmap, **pipeline_options)
+        options = dict(pipeline_options)
+        if init is not None and "attitude_sigma_rad" not in options:  # a heading typed by hand, maybe levelled
+            options["attitude_sigma_rad"] = (INIT_TILT_SIGMA_RAD if "levelled" in init_source else 0.005,) * 2 + (
+                INIT_YAW_SIGMA_RAD,
+            )
+        pipe = make_online_pipeline(nav0, init_sigma_m, fmap, **options)
     else:
         pipe = pipeline_factory(nav0, init_sigma_m)
     imu = rec.imu
