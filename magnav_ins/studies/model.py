@@ -302,7 +302,9 @@ def run_estimator(
     prior = initial_estimate(sc, init)
     if j is None:
         name, mkind, fkind = FREE_INERTIAL, None, FREE_INERTIAL
-        fuser = make_fuser(FREE_INERTIAL, prior, noise, altitude_hold=hold)
+        # covariance stepped at the output spacing: the baseline's covariance is only reported there
+        dt_out = float(np.min(np.diff(t_out))) if len(t_out) > 1 else 1.0
+        fuser = make_fuser(FREE_INERTIAL, prior, noise, altitude_hold=hold, cov_step_s=max(1.0, dt_out))
         pipe = Pipeline(fuser)
         where = sc.where("imu")
     else:
