@@ -17,7 +17,15 @@ import numpy as np
 
 from ..core.frames import C_nb_from_q, euler_from_q_nb
 from ..core.types import ImuBatch, NavTrajectory
-from .link import MSG_ID, SET_MESSAGE_INTERVAL, CommandMessage, MavLink, OutputMessage
+from .link import (
+    MAV_TYPE_ONBOARD_CONTROLLER,
+    MSG_ID,
+    SET_MESSAGE_INTERVAL,
+    CommandMessage,
+    Heartbeat,
+    MavLink,
+    OutputMessage,
+)
 
 
 def magnetometer_body_nt(traj: NavTrajectory, anomaly_nt: np.ndarray, main_field_ned_nt: np.ndarray) -> np.ndarray:
@@ -109,7 +117,8 @@ class AutopilotEmulator:
                 self.record.commands.append(msg)
                 if msg.command == SET_MESSAGE_INTERVAL and int(msg.params[0]) == MSG_ID["HIGHRES_IMU"]:
                     self.streaming = True
-            elif msg.__class__.__name__ == "Heartbeat":
+            elif isinstance(msg, Heartbeat) and msg.mav_type == MAV_TYPE_ONBOARD_CONTROLLER:
+                # only the companion computer's: a router (MAVProxy) in between adds its own GCS heartbeats
                 self.record.heartbeats_from_bridge += 1
                 if self.record.first_heartbeat_s is None:
                     self.record.first_heartbeat_s = now
