@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..core.errors import ConfigError, MagnavError
-from ..core.frames import C_nb_from_q, meters_to_latlon
+from ..core.frames import euler_from_q_nb, meters_to_latlon, q_nb_from_euler
 from ..core.types import FieldReadings, NavEstimate, NavState, NavTrajectory
 from ..core.units import DEG_TO_RAD
 from .runner import EstimatorOutput, RunOutput
@@ -156,17 +156,15 @@ def _shared(sc: Scenario) -> dict[str, Any]:
 # ------------------------------------------------------------------------------------------------ per-run draws
 def perturbed_init(sc: Scenario, truth: NavTrajectory, rng: np.random.Generator) -> NavState:
     """The truth's first state with the ``[init]`` 1-sigma errors drawn from ``rng``: position north/east (m),
-    velocity NED (m/s), attitude as a small rotation (roll, pitch, yaw sigma) applied on the nav side."""
-    from scipy.spatial.transform import Rotation
-
+    velocity NED (m/s), and roll, pitch, yaw errors (the ``attitude_sigma_deg`` triple) added to the Euler angles."""
     s0 = truth.at(0)
     ic = sc.init
     dn, de = rng.normal(0.0, ic.position_sigma_m, 2)
     dlat, dlon = meters_to_latlon(dn, de, s0.lat, s0.h)
     dv = rng.normal(0.0, ic.velocity_sigma_mps, 3)
     datt = rng.normal(0.0, 1.0, 3) * np.asarray(ic.attitude_sigma_deg) * DEG_TO_RAD
-    C_err = Rotation.from_euler("ZYX", datt[::-1]).as_matrix()  # yaw, pitch, roll tilt
-    q = Rotation.from_matrix(C_err @ C_nb_from_q(s0.q_nb)).as_quat()
+    roll, pitch, yaw = euler_from_q_nb(s0.q_nb)
+    q = q_nb_from_euler(float(roll) + datt[0], float(pitch) + datt[1], float(yaw) + datt[2])
     return NavState(s0.t, s0.lat + float(dlat), s0.lon + float(dlon), s0.h, s0.v_n + dv, q)
 
 
