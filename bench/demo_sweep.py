@@ -10,6 +10,8 @@ import json
 import sys
 from dataclasses import replace
 
+import numpy as np
+
 from magnav_ins.studies.demo import DemoConfig, run_demo
 
 KEYS = (
@@ -20,14 +22,32 @@ KEYS = (
 
 
 def main(argv: list[str]) -> None:
+    """Each argument: DemoConfig overrides as JSON; ``"seeds": [..]`` runs each seed and adds the spread."""
     for arg in argv or ["{}"]:
         over = json.loads(arg)
-        cfg = replace(DemoConfig(), **over)
-        s = run_demo(cfg).summary
-        print(
-            json.dumps({"overrides": over, **{k: (round(s[k], 2) if isinstance(s[k], float) else s[k]) for k in KEYS}})
-        )
-        sys.stdout.flush()
+        seeds = over.pop("seeds", None)
+        runs = []
+        for sd in seeds if seeds is not None else [None]:
+            o = dict(over) if sd is None else {**over, "seed": sd}
+            s = run_demo(replace(DemoConfig(), **o)).summary
+            row = {k: (round(s[k], 2) if isinstance(s[k], float) else s[k]) for k in KEYS}
+            row.update(no_fix=s["no_fix_reasons"], rejected=s["rejected_fix_reasons"])
+            print(json.dumps({"overrides": o, **row}))
+            sys.stdout.flush()
+            runs.append(s)
+        if len(runs) > 1:
+            f = np.array([r["improvement_factor"] for r in runs])
+            a = np.array([r["rms_horizontal_m"] for r in runs])
+            summary = {
+                "overrides": over,
+                "seeds": seeds,
+                "improvement_min": round(float(f.min()), 2),
+                "improvement_median": round(float(np.median(f)), 2),
+                "aided_rms_median_m": round(float(np.median(a)), 1),
+                "all_at_least_3x": bool((f >= 3).all()),
+            }
+            print(json.dumps(summary))
+            sys.stdout.flush()
 
 
 if __name__ == "__main__":

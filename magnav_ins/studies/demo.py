@@ -114,6 +114,7 @@ def _truth(cfg: DemoConfig, pts: dict[str, np.ndarray]):
 def run_demo(cfg: DemoConfig | None = None) -> DemoResult:
     """Run the demo (module docstring) and return its summary, dataset and map. Nothing is written."""
     from ..aiding.fusion import ImuNoise, make_fuser
+    from ..aiding.matchers.metrics import no_fix_reasons
     from ..aiding.matchers.registry import build_matcher
     from ..ins import imu_models, simulate
     from ..ins.error_model import initial_covariance
@@ -208,6 +209,8 @@ def run_demo(cfg: DemoConfig | None = None) -> DemoResult:
         "fix_error_median_m": _median(summ.estimators[name].metrics.fix_errors_m),
         "fix_error_rms_m": _rms(summ.estimators[name].metrics.fix_errors_m),
         "nees_mean": est["nees_mean"],
+        "no_fix_reasons": no_fix_reasons(aided.fixes),
+        "rejected_fix_reasons": _rejections(aided.innovations),
         "matcher": cfg.matcher,
         "fusion": cfg.fusion,
         "grade": cfg.grade,
@@ -228,6 +231,16 @@ def run_demo(cfg: DemoConfig | None = None) -> DemoResult:
         "wall_s": float(wall),
     }
     return DemoResult(summary, runs_dataset([summ], doc["name"]), fmap)
+
+
+def _rejections(innovations: list[Any]) -> dict[str, int]:
+    """Count of the fuser's reasons for rejecting issued fixes (the text before the first number)."""
+    out: dict[str, int] = {}
+    for inn in innovations:
+        if not inn.accepted and not inn.reason.startswith("no fix"):
+            key = inn.reason.split(" ")[0] if inn.reason else "unspecified"
+            out[key] = out.get(key, 0) + 1
+    return out
 
 
 def _median(x: np.ndarray) -> float | None:
