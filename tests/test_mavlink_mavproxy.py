@@ -193,6 +193,9 @@ def test_bridges_behind_mavproxy_get_imu_and_reach_the_autopilot(osborne, tmp_pa
         assert err.max() < 50.0, (kind, err.max())
     gps = [o for o in rec.outputs if o.kind == "gps_input" and o.healthy]
     assert all(o.fields["fix_type"] == 3 and o.fields["time_week"] > 2000 for o in gps)
+    # PX4 >= 1.18 maps GLOBAL_POSITION_SENSOR.id to an EKF2_AGPn_ID slot, where 0 means "slot disabled"
+    gps_sensor = [o for o in rec.outputs if o.kind == "global_position_sensor"]
+    assert all(o.fields["id"] != 0 and o.fields["target_system"] == 1 for o in gps_sensor)
 
 
 # --- the command line -----------------------------------------------------------------------------------------------

@@ -637,14 +637,18 @@ class MavLink:
         sigma_h: float,
         sigma_v: float,
         healthy: bool,
+        sensor_id: int = 1,
     ) -> None:
-        """GLOBAL_POSITION_SENSOR (296) for PX4 auxiliary global position; unhealthy -> GLOBAL_POSITION_UNHEALTHY."""
+        """GLOBAL_POSITION_SENSOR (296) for PX4 auxiliary global position; unhealthy -> GLOBAL_POSITION_UNHEALTHY.
+
+        ``sensor_id`` (1-255) is matched by PX4 >= 1.18 against ``EKF2_AGPn_ID``, where 0 disables a slot, so it must
+        not be 0."""
         flags = 0 if healthy else GLOBAL_POSITION_UNHEALTHY
         self._send(
             lambda: self.mav.global_position_sensor_send(
                 target_system,
                 target_component,
-                0,
+                sensor_id,
                 t_usec,
                 processing_us,
                 GLOBAL_POSITION_SOURCE[source],
