@@ -62,6 +62,9 @@ def test_demo_end_to_end(tmp_path, capsys):
     assert s["duration_s"] == pytest.approx(27.5e3 / 60.0, rel=0.02)
     assert 0 < s["fixes_accepted"] <= s["fixes_issued"] <= s["fix_attempts"]
     assert s["wall_s"] > 0
+    # same IMU samples and initial state: the aided INS is the free INS until the first accepted fix
+    assert s["first_fix_accepted_s"] > 30.0
+    assert s["aided_minus_free_before_first_fix_m"] < 1e-6
     for name in ("track.png", "error_vs_time.png"):
         data = (out / name).read_bytes()
         assert data[:8] == PNG_MAGIC and len(data) > 10_000
