@@ -155,7 +155,7 @@ class BayesGridMatcher:
             return Fix.no_fix(t, "prior not finite", self.name), {}
         frame = make_frame(fmap, state.lat, state.lon)
         step0 = self.resolution_m or spacing_of(fmap, 0.5)
-        half_n, half_e = sigma_window(cov, self.window_sigma, max(self.window_floor_m, 2 * step0))
+        half_n, half_e = sigma_window(cov, self.window_sigma, self.window_floor_m)
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
         s2 = float(readings.sigma) ** 2 + self.map_sigma**2
         g_rms = native_gradient_rms(native)
@@ -164,6 +164,8 @@ class BayesGridMatcher:
             fine = max(self.quantisation * np.sqrt(s2) / g_rms, sp / self.max_refine)
             if fine < 0.99 * sp:  # interpolate the map (Storms sec. 3.2) so the node error stays near the noise
                 native, step0 = None, fine
+        if native is None and self.resolution_m is None:  # no native local grid (geodetic map): interpolate
+            step0 = min(step0, min(half_n, half_e) / 10.0)
         if native is not None and native[0].size >= 3 and native[1].size >= 3:
             n_ax, e_ax, v = native
             step = 0.5 * (float(n_ax[1] - n_ax[0]) + float(e_ax[1] - e_ax[0]))

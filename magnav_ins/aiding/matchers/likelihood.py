@@ -150,7 +150,7 @@ class LikelihoodMatcher:
         cov = np.asarray(window.cov_ne, dtype=float)
         cov_last = cov[-1] if cov.ndim == 3 else cov
         if self.search_window:
-            half_n, half_e = sigma_window(cov_last, self.window_sigma, max(self.window_floor_m, step0))
+            half_n, half_e = sigma_window(cov_last, self.window_sigma, self.window_floor_m)
             if not np.isfinite(half_n):
                 return "prior covariance not finite"
         else:
@@ -169,6 +169,11 @@ class LikelihoodMatcher:
             sp = [float(a[1] - a[0]) for a in native[:2] if a.size > 1]
             if sp and fine < 0.99 * min(sp):
                 native, step0 = None, fine
+        if native is None and self.resolution_m is None:  # no native local grid (geodetic map): interpolate
+            options = [step0, min(half_n, half_e) / 10.0]
+            if self.quantisation > 0 and np.isfinite(g_rms) and g_rms > 0:
+                options.append(self.quantisation * np.sqrt(s2) / g_rms)
+            step0 = min(options)
         if native is not None:
             n_ax, e_ax, v_last = native
             stride = int(np.ceil(np.sqrt(n_ax.size * e_ax.size * nz / self.max_nodes)))

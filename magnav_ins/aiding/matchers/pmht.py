@@ -21,6 +21,11 @@ For a batch of ``T`` scans (field readings ``s_t`` with INS-indicated positions 
    feature variability (eq. 14) ``C``: multiplied by ``max(1, variability_ref / (C / s^2))``; aiding stops (no fix,
    "flat map") where ``sqrt(C) < min_variability * s``.
 
+Covariance floor (``crlb_floor``, ours): the fix covariance is scaled up, if needed, until it is no smaller than
+the Cramer-Rao bound ``J^-1`` of a common position offset over the batch, ``J = sum_t G_t' G_t / s^2`` with the map
+gradient ``G_t`` along the estimated track: on smooth maps the EM collapses onto a few candidates and its own
+covariance is far too small (fix NEES 4-80 on the EIGEN-6C4 10' gravity grid without it).
+
 Departure from the paper, stated: by default (``use_prior=False``) the position prior of the forward filter is
 diffuse (the INS prior only centres the gates and starts the EM), so the fix is independent of the INS and can be
 fused without counting the INS twice; ``use_prior=True`` uses the INS covariance as in eq. 11.
@@ -299,6 +304,7 @@ class PMHTResult:
     half: FloatArray
     sigma2: float
     profile_chi2: float
+    fisher: FloatArray
 
 
 @dataclass
@@ -333,6 +339,7 @@ class PMHTMatcher:
     candidate_floor_m: float | None = None
     variance_factor: bool = True
     detection_prob: float = 0.9
+    crlb_floor: bool = True
     name: str = "pmht"
 
     def __post_init__(self) -> None:
@@ -361,10 +368,14 @@ class PMHTMatcher:
             lo_n, hi_n = np.nanmin(x_ins[:, 0] - half[:, 0]), np.nanmax(x_ins[:, 0] + half[:, 0])
             lo_e, hi_e = np.nanmin(x_ins[:, 1] - half[:, 1]), np.nanmax(x_ins[:, 1] + half[:, 1])
             full = frame.native(lo_n, hi_n, lo_e, hi_e)
+        if full is not None and (full[0].size < 2 or full[1].size < 2):
+            full = None
+        if full is not None:  # gates narrower than a few nodes: interpolate instead (generic path)
+            dy, dx = float(full[0][1] - full[0][0]), float(full[1][1] - full[1][0])
+            if float(np.min((2 * half[:, 0] / dy + 1) * (2 * half[:, 1] / dx + 1))) < 9.0:
+                full = None
         if full is not None:
             ya, xa, vals = full
-            dy = float(ya[1] - ya[0]) if ya.size > 1 else 1.0
-            dx = float(xa[1] - xa[0]) if xa.size > 1 else 1.0
             boxes = np.empty((T, 4), dtype=np.int64)
             boxes[:, 0] = np.searchsorted(ya, x_ins[:, 0] - half[:, 0], "left")
             boxes[:, 1] = np.searchsorted(ya, x_ins[:, 0] + half[:, 0], "right")
@@ -374,7 +385,7 @@ class PMHTMatcher:
                 np.ascontiguousarray(vals), float(ya[0]), dy, float(xa[0]), dx, boxes, z, self.candidates, s2, vg2
             )
             return cand, dist, grad2, counts, var, 0.5 * (dy + dx)
-        step = self.resolution_m or spacing_of(fmap, 1.0)
+        step = self.resolution_m or min(spacing_of(fmap, 1.0), float(np.min(half)) / 10.0)
         cand = np.full((T, self.candidates, 2), np.nan)
         dist = np.full((T, self.candidates), np.inf)
         grad2 = np.zeros((T, self.candidates))
@@ -432,8 +443,7 @@ class PMHTMatcher:
         x_ins = np.column_stack([dn, de])
         cov = np.asarray(window.cov_ne, float)[sl]
         s2 = float(rd.sigma) ** 2 + self.map_sigma**2
-        step_guess = self.resolution_m or spacing_of(fmap, 1.0)
-        half = np.array([sigma_window(c, self.gate_sigma, max(self.window_floor_m, step_guess)) for c in cov])
+        half = np.array([sigma_window(c, self.gate_sigma, self.window_floor_m) for c in cov])
         if not np.all(np.isfinite(half)):
             return "prior covariance not finite"
         cand, dist, grad2, counts, var, step = self._lookup(frame, fmap, x_ins, half, z, s2)
@@ -508,7 +518,15 @@ class PMHTMatcher:
         chi = np.sum((z - m_est) ** 2, axis=1) / var_t
         chi = chi[good & np.isfinite(chi)]
         profile = float(np.mean(chi) / z.shape[1]) if chi.size else float("nan")
-        return PMHTResult(X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile)
+        # Cramer-Rao bound of a common position offset over the batch: J = sum_t G_t' G_t / s^2 with the map
+        # gradient G_t at the estimated track (central differences); the fix covariance may not be smaller
+        hstep = max(0.5 * step, 0.5)
+        gn_ = (frame.sample(X[:, 0] + hstep, X[:, 1]) - frame.sample(X[:, 0] - hstep, X[:, 1])).reshape(T, -1)
+        ge_ = (frame.sample(X[:, 0], X[:, 1] + hstep) - frame.sample(X[:, 0], X[:, 1] - hstep)).reshape(T, -1)
+        G = np.stack([gn_, ge_], axis=-1) / (2 * hstep)  # (T, c, 2)
+        G = G[good & np.all(np.isfinite(G), axis=(1, 2))]
+        J = np.einsum("tci,tcj->ij", G, G) / (float(rd.sigma) ** 2 + self.map_sigma**2)
+        return PMHTResult(X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J)
 
     def _fix(self, res: PMHTResult, k: int) -> Fix:
         t = float(res.t[k])
@@ -530,6 +548,22 @@ class PMHTMatcher:
         cov = 0.5 * (res.P[k, :2, :2] + res.P[k, :2, :2].T)
         if self.variance_factor:  # a-posteriori variance factor: mean NIS per 2-D pseudo-measurement / 2
             cov = cov * max(1.0, res.nis / 2.0)
+        if self.crlb_floor:  # smallest k with k cov >= J^-1 (Loewner order): never claim more than the CRLB
+            ev, evec = np.linalg.eigh(cov)
+            if np.all(ev > 0):
+                w_ = evec * np.sqrt(ev)
+                kk = float(np.linalg.eigvalsh(w_.T @ res.fisher @ w_)[0])  # min eig of cov^1/2 J cov^1/2
+                if kk < 1.0:
+                    cov = cov / max(kk, 1e-12)
+            sig_max = float(np.sqrt(np.linalg.eigvalsh(cov)[-1]))
+            if sig_max > float(np.max(res.half[k])):
+                return Fix.no_fix(
+                    t,
+                    f"flat map: fix sigma {sig_max:.3g} m (Cramer-Rao bound) exceeds the gate half-width "
+                    f"{float(np.max(res.half[k])):.3g} m",
+                    self.name,
+                    res.nis,
+                )
         if self.variability_ref > 0:  # eq. 14 weighting: inflate where C / s^2 is below the reference
             cov = cov * max(1.0, self.variability_ref / max(res.variability / res.sigma2, 1e-300))
         lat, lon = res.frame.to_latlon(xk[0], xk[1])
