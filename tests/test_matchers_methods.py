@@ -293,3 +293,39 @@ def test_particle_fix_mode_uses_inner_matcher():
     d = local(fmap, fix.lat, fix.lon) - truth
     assert np.hypot(*d) < 5.0  # the prior was 6.4 m off
     assert d @ np.linalg.solve(fix.cov_ne, d) < 9.0
+
+
+# ---------------------------------------------------------------------------------------------- geodetic grid maps
+def test_matchers_on_a_geodetic_grid_map():
+    """Maps on a lat/lon grid have no native local nodes: the scans interpolate (ML section, PMHT batch)."""
+    from magnav_ins.core.frames import radii_of_curvature
+    from magnav_ins.maps.grid import GridMap
+    from magnav_ins.maps.synthetic import gaussian_random_field
+
+    rng = np.random.default_rng(51)
+    lat0, lon0 = ORIGIN[0], ORIGIN[1]
+    r_n, r_e = (float(x) for x in radii_of_curvature(lat0))
+    n_ax = np.arange(300) * 10.0
+    e_ax = np.arange(300) * 10.0
+    vals = gaussian_random_field((300, 300), 10.0, 300.0, 20.0, rng)
+    fmap = GridMap(
+        lat0 + n_ax / r_n, lon0 + e_ax / (r_e * np.cos(lat0)), vals, kind=KIND_G, frame="geodetic", altitude_m=0.0
+    )
+    # PMHT: 30 scans 71 m apart, inside the 3 km map
+    v = np.array([5.0, 5.0])
+    truth = np.array([-800.0, -700.0]) + v * 10.0 * np.arange(30)[:, None]  # about the grid centre
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 0.5, 30)
+    w = make_window(fmap, 10.0 * np.arange(30), truth, z, 0.5, KIND_G, np.array([35.0, -20.0]), np.eye(2) * 900, v)
+    fix = PMHTMatcher().match(w, fmap)
+    assert fix.available, fix.reason
+    d = local(fmap, fix.lat, fix.lon) - truth[-1]
+    assert np.hypot(*d) < 10.0 and d @ np.linalg.solve(fix.cov_ne, d) < 12.0
+    # MLR on the last 12 readings (an 780 m section)
+    w12 = make_window(
+        fmap, 10.0 * np.arange(12), truth[-12:], z[-12:], 0.5, KIND_G, np.array([35.0, -20.0]), np.eye(2) * 900, v
+    )
+    fix = LikelihoodMatcher(method="mlr").match(w12, fmap)
+    assert fix.available, fix.reason
+    d = local(fmap, fix.lat, fix.lon) - truth[-1]
+    assert np.hypot(*d) < 10.0 and d @ np.linalg.solve(fix.cov_ne, d) < 12.0
