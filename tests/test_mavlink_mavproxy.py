@@ -1,8 +1,8 @@
 """The bridge behind a real MAVLink router (MAVProxy), and ``magnav-ins bridge`` as a process.
 
 MAVProxy runs as a subprocess: its master (``udpin``) faces the emulated autopilot, its ``--out`` ports face two
-bridges (one sending GLOBAL_POSITION_SENSOR, one GPS_INPUT), as on a vehicle whose telemetry goes through a router on
-the companion computer. The bridges' requests, heartbeats and position outputs must cross MAVProxy to the autopilot and
+bridges (one sending GLOBAL_POSITION_SENSOR unsigned, one GPS_INPUT with MAVLink 2 signing, the autopilot signing and
+accepting both), as on a vehicle whose telemetry goes through a router on the companion computer. The bridges' requests, heartbeats and position outputs must cross MAVProxy to the autopilot and
 the IMU stream must cross it the other way. The CLI test runs the real command line against the emulator.
 """
 
@@ -30,6 +30,7 @@ from magnav_ins.mavlink.replay import make_online_pipeline
 
 START = (math.radians(-21.93), math.radians(140.62))  # inside builtin:osborne-magnetic, varied anomaly
 BIN = Path(sys.executable).parent
+KEY = bytes(range(32))  # MAVLink 2 signing key of the signed bridge and the emulated autopilot
 
 
 def free_udp_port() -> int:
@@ -99,9 +100,9 @@ def osborne():
     return load_map("builtin:osborne-magnetic")
 
 
-def _bridge(port: int, fmap, date: str, output: str) -> Bridge:
+def _bridge(port: int, fmap, date: str, output: str, key: bytes | None = None) -> Bridge:
     """As in test_mavlink_bridge.py: the bridge's link is ``udpin``, the autopilot is system 1 component 1."""
-    link = MavLink(f"udpin:127.0.0.1:{port}", source_system=1, peer_system=1, peer_component=1)
+    link = MavLink(f"udpin:127.0.0.1:{port}", source_system=1, peer_system=1, peer_component=1, signing_key=key)
     config = BridgeConfig(output=output, output_rate_hz=5.0, init_sigma_m=10.0)
 
     def factory(nav0, sigma_m):
@@ -156,10 +157,14 @@ def test_bridges_behind_mavproxy_get_imu_and_reach_the_autopilot(osborne, tmp_pa
         assert log.wait_for(r"Waiting for heartbeat", 20.0) is not None, f"MAVProxy did not start:\n{log.text()}"
         bridges = {
             "global_position_sensor": _bridge(p_gps, osborne, flight.date, "global_position_sensor"),
-            "gps_input": _bridge(p_gpsi, osborne, flight.date, "gps_input"),
+            # signed: it drops anything unsigned, so its IMU proves signed frames cross the (keyless) router intact
+            "gps_input": _bridge(p_gpsi, osborne, flight.date, "gps_input", key=KEY),
         }
         links += [b.link for b in bridges.values()]
-        ap = MavLink(f"udpout:127.0.0.1:{p_master}", source_system=1, source_component=1)
+        # the autopilot signs what it sends and still accepts the unsigned bridge
+        ap = MavLink(
+            f"udpout:127.0.0.1:{p_master}", source_system=1, source_component=1, signing_key=KEY, accept_unsigned=True
+        )
         links.append(ap)
         with AutopilotEmulator(ap, flight.truth, flight.imu, flight.mag_b_nt) as emu:
             t_end = time.monotonic() + 8.0
@@ -179,7 +184,7 @@ def test_bridges_behind_mavproxy_get_imu_and_reach_the_autopilot(osborne, tmp_pa
     assert rec.imu_sent > 200
     for b in bridges.values():  # the IMU crossed MAVProxy to both outputs
         assert b.health.imu_samples > 200 and b.health.state == "running" and b.health.healthy
-        assert b.link.stats.bad_data == 0
+        assert b.link.stats.bad_data == 0 and b.link.stats.rejected_signature == 0
     # heartbeats of the companion computer (not MAVProxy's own GCS heartbeats) and positions came back within 5 s
     assert rec.first_heartbeat_s is not None and rec.first_heartbeat_s < 5.0
     assert rec.heartbeats_from_bridge >= 8  # two bridges at 1 Hz for 8 s
