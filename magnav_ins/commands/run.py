@@ -53,6 +53,7 @@ def handle(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         plots=not args.no_plots,
         fmap=fmap,
+        command=f"magnav-ins run {args.scenario} --runs {runs} --seed {seed} --out {out}",
     )
     print(reports.metrics_table(doc), end="")
     print(f"wrote {out / 'metrics.json'} ({doc['runs']} runs, {doc['wall_s']:.1f} s)")

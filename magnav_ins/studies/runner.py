@@ -344,6 +344,7 @@ def write_outputs(
     doc: dict[str, Any],
     plots: bool = True,
     fmap: Any = None,
+    command: str | None = None,
 ) -> list[Path]:
     """Write ``metrics.json``, ``runs.nc``, ``report.md`` and figures into ``out_dir``. Everything is first
     written into a hidden staging folder inside ``out_dir`` and moved into place only when all of it succeeded
@@ -363,7 +364,7 @@ def write_outputs(
         with atomic_path(stage / "runs.nc") as tmp:
             ds.to_netcdf(tmp, engine="netcdf4")
         figures = P.study_figures(ds, stage, fmap=fmap) if plots else []
-        write_text_atomic(stage / "report.md", reports.markdown_report(doc, [f.name for f in figures]))
+        write_text_atomic(stage / "report.md", reports.markdown_report(doc, [f.name for f in figures], command))
         write_text_atomic(stage / "metrics.json", json.dumps(doc, indent=2, allow_nan=False) + "\n")
         names = ["runs.nc", *(f.name for f in figures), "report.md", "metrics.json"]  # metrics.json last
         written = []
@@ -387,11 +388,12 @@ def run_study(
     plots: bool = True,
     fmap: Any = None,
     max_samples: int = DEFAULT_MAX_SAMPLES,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Execute the study and (if ``out_dir``) write its outputs. Returns the ``metrics.json`` document."""
     t0 = time.perf_counter()
     summaries = execute(model, runs, seed, jobs, scheduler, quiet, max_samples)
     doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name)
     if out_dir is not None:
-        write_outputs(out_dir, summaries, doc, plots=plots, fmap=fmap)
+        write_outputs(out_dir, summaries, doc, plots=plots, fmap=fmap, command=command)
     return doc
