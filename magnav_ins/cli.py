@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 from collections.abc import Sequence
 
@@ -31,10 +32,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_NEGATIVE_LIST = re.compile(r"^-\d[\d.]*(,[-+]?[\d.]+(e[-+]?\d+)?)+$", re.IGNORECASE)
+
+
+def _join_negative_lists(argv: Sequence[str]) -> list[str]:
+    """``--init -21.9,140.6,400,0`` -> ``--init=-21.9,140.6,400,0``: argparse takes a comma list that starts with a
+    minus sign for an option, so a southern latitude or western longitude would otherwise be refused."""
+    out: list[str] = []
+    for tok in argv:
+        if out and _NEGATIVE_LIST.match(tok) and out[-1].startswith("--") and "=" not in out[-1]:
+            out[-1] = f"{out[-1]}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: parse ``argv``, run the handler, map user errors to exit status 2."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
     try:
         return int(args.handler(args) or 0)
     except MagnavError as exc:

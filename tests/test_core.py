@@ -121,3 +121,11 @@ def test_atomic_write_mode_and_no_leftovers(tmp_path):
             tmp.write_text("half")
             raise RuntimeError("writer failed")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+
+
+def test_cli_joins_negative_comma_lists_to_their_option():
+    from magnav_ins.cli import _join_negative_lists
+
+    assert _join_negative_lists(["bridge", "--init", "-21.93,140.6,400,-5"]) == ["bridge", "--init=-21.93,140.6,400,-5"]
+    assert _join_negative_lists(["--seed", "-3"]) == ["--seed", "-3"]  # plain negative numbers argparse handles itself
+    assert _join_negative_lists(["--init=-1,2,3,4"]) == ["--init=-1,2,3,4"]
