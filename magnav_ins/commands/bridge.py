@@ -36,7 +36,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--calibration", help="magnetometer calibration JSON from 'magnav-ins calibrate'")
     p.add_argument("--date", default=None, help="date for IGRF, YYYY-MM-DD (default today)")
     p.add_argument("--reading-interval", type=float, default=0.1, help="seconds between magnetometer readings used")
-    p.add_argument("--max-sigma", type=float, default=300.0, help="do not send positions with a larger 1-sigma, m")
+    p.add_argument(
+        "--max-sigma",
+        type=float,
+        default=100.0,
+        help="do not send positions with a larger 1-sigma, m (default 100: EKF3 caps GPS accuracy there)",
+    )
     p.add_argument("--signing-key", help="MAVLink 2 signing key file (32 bytes, 64 hex characters or a passphrase)")
     p.add_argument("--sysid", type=int, default=1, help="our system id (default 1, the vehicle's)")
     p.add_argument("--autopilot-sysid", type=int, default=1)
