@@ -68,7 +68,7 @@ class BridgeConfig:
     init: tuple[float, float, float, float] | None = None  # lat, lon (rad), h (m), yaw (rad); else from the autopilot
     init_sigma_m: float = 30.0
     reading_interval_s: float = 0.1
-    max_sigma_m: float = 300.0
+    max_sigma_m: float = 100.0
     max_gap_s: float = 0.5
     reboot_backstep_s: float = 1.0
     stale_imu_s: float = 0.5
