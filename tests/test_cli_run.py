@@ -74,6 +74,9 @@ def test_run_user_errors_exit_2(tmp_path, capsys):
     good = tmp_path / "good.toml"
     good.write_text(TINY)
     assert _main(["run", str(good), "--runs", "0", "--out", str(tmp_path / "o")]) == 2
+    assert _main(["run", str(good), "--duration", "-5", "--out", str(tmp_path / "o")]) == 2
+    assert "--duration" in capsys.readouterr().out
+    assert not (tmp_path / "o").exists()
 
 
 def test_cli_registers_run():

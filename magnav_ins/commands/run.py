@@ -8,6 +8,7 @@ not on ``--jobs`` or ``--scheduler``.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from ..core.errors import ConfigError
@@ -20,6 +21,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default: the scenario's 'runs')")
     p.add_argument("--seed", type=int, default=None, help="master seed (default: the scenario's 'seed')")
     p.add_argument("--jobs", type=int, default=1, help="local worker processes (default 1)")
+    p.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="truncate the trajectory to S seconds (quick looks)"
+    )
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT", help="run on a Dask cluster instead")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -32,6 +36,10 @@ def handle(args: argparse.Namespace) -> int:
     from ..studies.scenario import load_scenario
 
     sc = load_scenario(args.scenario)
+    if args.duration is not None:
+        if not args.duration > 0:
+            raise ConfigError(f"--duration must be > 0 s, got {args.duration}")
+        sc = dataclasses.replace(sc, trajectory=dataclasses.replace(sc.trajectory, duration_s=args.duration))
     runs = sc.runs if args.runs is None else args.runs
     seed = sc.seed if args.seed is None else args.seed
     if runs < 1:
@@ -53,7 +61,8 @@ def handle(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         plots=not args.no_plots,
         fmap=fmap,
-        command=f"magnav-ins run {args.scenario} --runs {runs} --seed {seed} --out {out}",
+        command=f"magnav-ins run {args.scenario} --runs {runs} --seed {seed} --out {out}"
+        + (f" --duration {args.duration:g}" if args.duration is not None else ""),
     )
     print(reports.metrics_table(doc), end="")
     print(f"wrote {out / 'metrics.json'} ({doc['runs']} runs, {doc['wall_s']:.1f} s)")
