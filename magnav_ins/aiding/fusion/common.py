@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ...core.errors import InputError
-from ...core.frames import C_en, geodetic_to_ned, latlon_to_meters, ned_to_geodetic
+from ...core.frames import C_en, geodetic_to_ned, latlon_to_meters, ned_to_geodetic, skew
 from ...core.types import Fix, ImuBatch, Innovation, NavEstimate, NavState, NavTrajectory
 from ...ins.earth import gravity_n
 
@@ -172,6 +172,16 @@ def check_time(t_new: float, t_last: float, what: str) -> None:
         raise InputError(f"{what}: time goes backwards: t={t_new!r} s after t={t_last!r} s")
 
 
+def _dcm(q: FloatArray) -> FloatArray:
+    """``C_nb`` from a unit scalar-last quaternion (the same as :func:`core.frames.C_nb_from_q`, a few µs)."""
+    x, y, z, w = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    return np.array([
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
+        [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
+        [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
 def _expm(A: FloatArray, order: int = 10) -> FloatArray:
     """Matrix exponential by scaling and squaring with a Taylor polynomial (Moler & Van Loan 2003, method 3):
     ``exp(A) = (T_order(A / 2^s))^(2^s)`` with ``||A / 2^s||_1 <= 0.25`` (truncation below 1e-13). Only matrix
@@ -245,8 +255,7 @@ class InertialCore:
         self._b_a = np.zeros(3)
         self._b_g = np.zeros(3)
         self._t_cov = float(init.nav.t)
-        self._f_sum = np.zeros(3)
-        self._f_dt = 0.0
+        self._clear_step_sums()
         self._samples: list[tuple[float, FloatArray, FloatArray]] = []
         self._n_dropped = 0  # samples dropped from the front of the buffer
         self._checkpoints: list[tuple] = []
@@ -294,6 +303,14 @@ class InertialCore:
             del self._samples[:drop]
             self._n_dropped += drop
 
+    def _clear_step_sums(self) -> None:
+        """Start a covariance step: integrals of ``C_nb`` and ``C_nb f_b`` (navigation-frame specific force) over
+        it, and its length; the attitude at the step start is re-read from the INS (it may have been corrected)."""
+        self._C_sum = np.zeros((3, 3))
+        self._fn_sum = np.zeros(3)
+        self._f_dt = 0.0
+        self._C_prev: FloatArray | None = None
+
     def _predict_cov(self, Phi: FloatArray, Qd: FloatArray) -> None:
         self._P = symmetrise(Phi @ self._P @ Phi.T + Qd, 0.0)
 
@@ -306,23 +323,34 @@ class InertialCore:
         if dt <= 0.0:
             return
         nav = self._stepper.nav
-        f_b = self._f_sum / self._f_dt if self._f_dt > 0 else np.zeros(3)
-        F, G, Qc = system_matrices(nav.lat, nav.h, nav.v_n, C_nb_from_q(nav.q_nb), f_b, self.noise)
+        C_end = C_nb_from_q(nav.q_nb)
+        F, G, Qc = system_matrices(nav.lat, nav.h, nav.v_n, C_end, np.zeros(3), self.noise)
+        if self._f_dt > 0:
+            # the attitude-dependent blocks averaged over the step (first Magnus term of the time-varying F):
+            # mean C_nb for the bias columns, mean navigation-frame specific force for the tilt column
+            C_mean = self._C_sum / self._f_dt
+            F[3:6, 6:9] = -skew(self._fn_sum / self._f_dt)
+            F[3:6, 9:12] = -C_mean
+            F[6:9, 12:15] = -C_mean
         Phi, Qd = discretize_fast(F, G, Qc, dt)
         self._predict_cov(Phi, Qd)
         if self._history is not None:
             self._history.append([self.t, Phi, self._P.copy(), self._P.copy(), np.zeros(15), self._stepper.nav,
                                   self._b_a.copy(), self._b_g.copy()])  # fmt: skip
         self._t_cov = self.t
-        self._f_sum = np.zeros(3)
-        self._f_dt = 0.0
+        self._clear_step_sums()
         self._checkpoint()
 
     def _step(self, t: float, w: FloatArray, f: FloatArray) -> None:
         dt = t - self.t
         f_c = f - self._b_a
+        C0 = self._C_prev if self._C_prev is not None else _dcm(self._stepper.nav.q_nb)
         self._stepper.step_rate(t, w - self._b_g, f_c)
-        self._f_sum += f_c * dt
+        C1 = _dcm(self._stepper.nav.q_nb)
+        C_mid = 0.5 * (C0 + C1)  # attitude over the sample (trapezoid)
+        self._C_prev = C1
+        self._C_sum += C_mid * dt
+        self._fn_sum += C_mid @ f_c * dt
         self._f_dt += dt
         if t - self._t_cov >= self.cov_step_s - 1e-9:
             self._advance_cov()
@@ -346,8 +374,7 @@ class InertialCore:
         if self._history is not None:
             while len(self._history) > 1 and self._history[-1][0] > t_c + 1e-9:
                 self._history.pop()
-        self._f_sum = np.zeros(3)
-        self._f_dt = 0.0
+        self._clear_step_sums()
         self._checkpoint()
         rest = []
         for k, (t, w, f) in enumerate(samples):
