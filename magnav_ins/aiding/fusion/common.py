@@ -214,6 +214,25 @@ def discretize_fast(F: FloatArray, G: FloatArray, Qc: FloatArray, dt: float) -> 
     return Phi, 0.5 * (Qd + Qd.T)
 
 
+def step_matrices(
+    nav: NavState, C_sum: FloatArray, fn_sum: FloatArray, sum_dt: float, dt: float, noise: ImuNoise
+) -> tuple[FloatArray, FloatArray]:
+    """``(Phi, Qd)`` of one covariance step of ``dt`` s ending at ``nav``: ``F, G, Qc`` from
+    :func:`ins.error_model.system_matrices` at ``nav``, with the attitude-dependent blocks averaged over the step
+    (the first Magnus term of the time-varying ``F``): ``-mean(C_nb)`` for the bias columns and
+    ``-[mean(f_n) x]`` for the tilt column, from the step integrals ``C_sum`` = int C_nb dt, ``fn_sum`` =
+    int C_nb f_b dt over ``sum_dt`` s; then Van Loan (:func:`discretize_fast`)."""
+    from ...ins.error_model import system_matrices
+
+    F, G, Qc = system_matrices(nav.lat, nav.h, nav.v_n, _dcm(nav.q_nb), np.zeros(3), noise)
+    if sum_dt > 0:
+        C_mean = C_sum / sum_dt
+        F[3:6, 6:9] = -skew(fn_sum / sum_dt)
+        F[3:6, 9:12] = -C_mean
+        F[6:9, 12:15] = -C_mean
+    return discretize_fast(F, G, Qc, dt)
+
+
 class InertialCore:
     """Strapdown INS (:class:`ins.strapdown.StrapdownStepper`) with the 15-state error covariance of
     :mod:`ins.error_model` propagated alongside, plus a short replay buffer for late fixes.
@@ -250,6 +269,11 @@ class InertialCore:
         self.noise = noise
         self.cov_step_s = float(cov_step_s)
         self.buffer_s = float(buffer_s)
+        self._init_nav = init.nav
+        self._P0 = symmetrise(P0, 0.0)
+        self._altitude_hold = altitude_hold
+        self._raw: list[tuple[float, FloatArray, FloatArray]] = []  # every sample once (keep_history only)
+        self._fix_log: list[tuple] = []  # accepted fixes (keep_history only): (t, fix, height_m, height_sigma_m)
         self._stepper = StrapdownStepper(init.nav, altitude_hold=altitude_hold)
         self._P = symmetrise(P0, 0.0)
         self._b_a = np.zeros(3)
@@ -316,23 +340,10 @@ class InertialCore:
 
     def _advance_cov(self) -> None:
         """Propagate the covariance from its time to the INS time (one step) and checkpoint."""
-        from ...core.frames import C_nb_from_q
-        from ...ins.error_model import system_matrices
-
         dt = self.t - self._t_cov
         if dt <= 0.0:
             return
-        nav = self._stepper.nav
-        C_end = C_nb_from_q(nav.q_nb)
-        F, G, Qc = system_matrices(nav.lat, nav.h, nav.v_n, C_end, np.zeros(3), self.noise)
-        if self._f_dt > 0:
-            # the attitude-dependent blocks averaged over the step (first Magnus term of the time-varying F):
-            # mean C_nb for the bias columns, mean navigation-frame specific force for the tilt column
-            C_mean = self._C_sum / self._f_dt
-            F[3:6, 6:9] = -skew(self._fn_sum / self._f_dt)
-            F[3:6, 9:12] = -C_mean
-            F[6:9, 12:15] = -C_mean
-        Phi, Qd = discretize_fast(F, G, Qc, dt)
+        Phi, Qd = step_matrices(self._stepper.nav, self._C_sum, self._fn_sum, self._f_dt, dt, self.noise)
         self._predict_cov(Phi, Qd)
         if self._history is not None:
             self._history.append([self.t, Phi, self._P.copy(), self._P.copy(), np.zeros(15), self._stepper.nav,
@@ -410,6 +421,8 @@ class InertialCore:
         for k in np.flatnonzero(imu.t > t_now + 1e-9):
             t, w, f = float(imu.t[k]), imu.gyro_b[k].copy(), imu.accel_b[k].copy()
             self._samples.append((t, w, f))
+            if self._history is not None:
+                self._raw.append((t, w, f))
             self._step(t, w, f)
 
     def estimate(self) -> NavEstimate:
@@ -425,33 +438,54 @@ class InertialCore:
         return self._b_a.copy(), self._b_g.copy()
 
     def _record_update(self, dx: FloatArray) -> None:
-        """Mark the last covariance step as updated by ``dx`` (error estimate before the reset)."""
+        """Mark the last covariance step as updated by ``dx`` (error estimate before the reset). Several updates at
+        one step (fixes with the same time) add up: each is relative to the state the previous one corrected, so
+        the step's total correction of its predicted state is their sum (to first order)."""
         if self._history is not None:
             h = self._history[-1]
             h[3], h[4], h[5], h[6], h[7] = (
                 self._P.copy(),
-                dx.copy(),
+                h[4] + dx,
                 self._stepper.nav,
                 self._b_a.copy(),
                 self._b_g.copy(),
             )
 
-    def smooth(self) -> tuple[NavTrajectory, FloatArray]:
-        """Rauch-Tung-Striebel smoothing of the recorded run (``keep_history=True``), in closed-loop error-state
-        form: with ``e`` the error of the filter's corrected state at each covariance step,
-        ``e_s(k) = C_k (e_s(k+1) + dx_{k+1})``, ``C_k = P+_k Phi_k^T (P-_{k+1})^-1``,
+    def _record_inflated_prior(self) -> None:
+        """The online filter inflated its covariance before an update (recovery): the smoother must use that
+        inflated prior as the step's predicted covariance, or its gain ``P+ Phi^T (P-)^-1`` mixes two priors
+        (only for the first update of a step; a later one inflates a posterior)."""
+        if self._history is not None and not np.any(self._history[-1][4]):
+            self._history[-1][2] = self._P.copy()
+
+    def _record_fix(self, fix: Fix, height_m: float | None, height_sigma_m: float | None) -> None:
+        """Log an accepted fix for the relinearised smoother passes (keep_history only)."""
+        if self._history is not None:
+            self._fix_log.append((float(fix.t), fix, height_m, height_sigma_m))
+
+    def smooth(self, iterations: int = 1) -> tuple[NavTrajectory, FloatArray]:
+        """Rauch-Tung-Striebel smoothing of the recorded run (``keep_history=True``).
+
+        Pass 1, in closed-loop error-state form: with ``e`` the error of the filter's corrected state at each
+        covariance step, ``e_s(k) = C_k (e_s(k+1) + dx_{k+1})``, ``C_k = P+_k Phi_k^T (P-_{k+1})^-1``,
         ``P_s(k) = P+_k + C_k (P_s(k+1) - P-_{k+1}) C_k^T`` (Rauch, Tung & Striebel 1965; ``dx`` is the update's
-        error estimate before its reset, zero without a fix). Returns the smoothed states at the step times and
-        their covariances (N,15,15)."""
+        error estimate before its reset, zero without a fix). It is linearised about the filter's trajectory,
+        which drifts between sparse fixes. Each further pass (``iterations`` > 1) relinearises about the previous
+        smoothed trajectory and biases (iterated extended Kalman smoother = Gauss-Newton on the batch problem,
+        Bell 1994): :meth:`_relinearised_pass`. Returns the smoothed states at the step times and their
+        covariances (N,15,15)."""
         from ...ins.error_model import apply_error
 
         if self._history is None:
             raise InputError("smooth(): construct the fuser with keep_history=True")
+        if int(iterations) < 1:
+            raise InputError(f"smooth(): iterations must be >= 1, got {iterations}")
         H = self._history
         n = len(H)
         e = np.zeros(15)
         Ps = H[-1][3].copy()
         out_nav = [H[-1][5]]
+        out_b = [np.r_[H[-1][6], H[-1][7]]]
         out_P = [Ps]
         for k in range(n - 2, -1, -1):
             Phi, Pm1, dx1 = H[k + 1][1], H[k + 1][2], H[k + 1][4]
@@ -460,11 +494,104 @@ class InertialCore:
             e = C @ (e + dx1)
             Ps = symmetrise(Pp + C @ (Ps - Pm1) @ C.T, 0.0)
             out_nav.append(apply_error(H[k][5], -e[:9]))
+            out_b.append(np.r_[H[k][6], H[k][7]] - e[9:15])
             out_P.append(Ps)
         out_nav.reverse()
+        out_b.reverse()
         out_P.reverse()
+        for _ in range(int(iterations) - 1):
+            out_nav, out_b, out_P = self._relinearised_pass(out_nav, out_b)
         traj = NavTrajectory(
             np.array([x.t for x in out_nav]), np.array([x.lat for x in out_nav]), np.array([x.lon for x in out_nav]),
             np.array([x.h for x in out_nav]), np.array([x.v_n for x in out_nav]), np.array([x.q_nb for x in out_nav]),
         )  # fmt: skip
         return traj, np.array(out_P)
+
+    def _relinearised_pass(self, nom: list[NavState], b_nom: list[FloatArray]) -> tuple[list, list, list]:
+        """One Kalman filter + RTS pass about a nominal trajectory ``nom`` (NavState at each step time) with
+        nominal biases ``b_nom`` ((6,) ``[b_a, b_g]``, held over the step that starts there).
+
+        The state is the nominal's error ``e_k = nom_k - truth_k`` (LAYOUT_15). The INS is re-run over each step
+        from ``nom_k`` with the samples corrected by ``b_nom_k`` to ``x~_{k+1}``; with the defect
+        ``d_{k+1} = x~_{k+1} - nom_{k+1}`` (:func:`ins.error_model.nav_error`; biases ``b_nom_k - b_nom_{k+1}``),
+        ``e_{k+1} = Phi_k e_k - d_{k+1} + w_k``, ``(Phi_k, Qd_k)`` from :func:`step_matrices` along the re-run.
+        Prior ``e_0 ~ N(nom_0 - init, P0)``. Each logged (accepted) fix: ``z = fix - nom`` (north/east m), ``z = -e[N,E]
+        + v`` (with a height: ``h_src - h_nom = e_D + v``), Joseph update. Then the RTS recursion
+        ``m_s(k) = m+_k + C_k (m_s(k+1) - m-_{k+1})`` and the new nominal ``nom_k - m_s(k)``. Recovery
+        inflation of the online filter is not repeated (the fixes count at their own noise)."""
+        from ...ins.error_model import apply_error, nav_error
+        from ...ins.strapdown import StrapdownStepper
+
+        n = len(nom)
+        times = np.array([x.t for x in nom])
+        T = np.array([r[0] for r in self._raw]) if self._raw else np.zeros(0)
+        fixes: dict[int, list] = {}
+        for entry in self._fix_log:
+            k = int(np.argmin(np.abs(times - entry[0])))
+            if abs(times[k] - entry[0]) < 1e-6:
+                fixes.setdefault(k, []).append(entry)
+        m = np.r_[nav_error(nom[0], self._init_nav), b_nom[0]]  # the filter starts from zero biases
+        P = self._P0.copy()
+        m_minus, P_minus, m_plus, P_plus, Phis = [], [], [], [], [None]
+        j = int(np.searchsorted(T, times[0] + 1e-9))
+        prev: tuple[FloatArray, FloatArray] | None = None
+        for k in range(n):
+            if k > 0:
+                b = b_nom[k - 1]
+                st = StrapdownStepper(nom[k - 1], altitude_hold=self._altitude_hold)
+                if prev is not None:
+                    st.prime(*prev)
+                C_sum, fn_sum, sum_dt = np.zeros((3, 3)), np.zeros(3), 0.0
+                C0 = _dcm(nom[k - 1].q_nb)
+                while j < len(T):
+                    t_end = min(T[j], times[k])
+                    dt = t_end - st.t
+                    if dt > 1e-12:
+                        w_c, f_c = self._raw[j][1] - b[3:6], self._raw[j][2] - b[0:3]
+                        st.step_rate(t_end, w_c, f_c)
+                        C1 = _dcm(st.nav.q_nb)
+                        C_mid = 0.5 * (C0 + C1)
+                        C0 = C1
+                        C_sum += C_mid * dt
+                        fn_sum += C_mid @ f_c * dt
+                        sum_dt += dt
+                        prev = (w_c * dt, f_c * dt)
+                    if T[j] <= times[k] + 1e-9:
+                        j += 1
+                    if t_end >= times[k] - 1e-9:
+                        break
+                end = st.nav
+                Phi, Qd = step_matrices(end, C_sum, fn_sum, sum_dt, times[k] - times[k - 1], self.noise)
+                d = np.r_[nav_error(end, nom[k]), b - b_nom[k]]
+                m = Phi @ m - d
+                P = symmetrise(Phi @ P @ Phi.T + Qd, 0.0)
+                Phis.append(Phi)
+            m_minus.append(m.copy())
+            P_minus.append(P.copy())
+            for _, fix, h_m, h_sig in fixes.get(k, []):
+                z = residual_ne(fix, nom[k])
+                Hm = np.zeros((2, 15))
+                Hm[0, 0] = Hm[1, 1] = -1.0
+                R = np.asarray(fix.cov_ne, float)
+                if h_m is not None:
+                    z = np.r_[z, float(h_m) - nom[k].h]
+                    Hm = np.vstack([Hm, np.eye(15)[2]])
+                    R = np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.array([[float(h_sig) ** 2]])]])
+                S = Hm @ P @ Hm.T + R
+                K = np.linalg.solve(S, Hm @ P).T
+                m = m + K @ (z - Hm @ m)
+                IKH = np.eye(15) - K @ Hm
+                P = symmetrise(IKH @ P @ IKH.T + K @ R @ K.T, 0.0)
+            m_plus.append(m.copy())
+            P_plus.append(P.copy())
+        ms, Ps = m_plus[-1], P_plus[-1]
+        out_nav, out_b, out_P = [apply_error(nom[-1], -ms[:9])], [b_nom[-1] - ms[9:15]], [Ps]
+        for k in range(n - 2, -1, -1):
+            Pm1 = P_minus[k + 1]
+            C = np.linalg.solve(Pm1.T, (P_plus[k] @ Phis[k + 1].T).T).T
+            ms = m_plus[k] + C @ (ms - m_minus[k + 1])
+            Ps = symmetrise(P_plus[k] + C @ (Ps - Pm1) @ C.T, 0.0)
+            out_nav.append(apply_error(nom[k], -ms[:9]))
+            out_b.append(b_nom[k] - ms[9:15])
+            out_P.append(Ps)
+        return out_nav[::-1], out_b[::-1], out_P[::-1]

@@ -167,6 +167,7 @@ class UkfFuser(InertialCore):
             k = slice(0, 9)
             self._P[k, :] *= np.sqrt(forced)
             self._P[:, k] *= np.sqrt(forced)
+            self._record_inflated_prior()
             u.P = self._jitter(self._P)
             u.predict(fx=_fx, Phi=np.eye(_N))
             Zs = np.array([hx(s) for s in u.sigmas_f])
@@ -190,6 +191,7 @@ class UkfFuser(InertialCore):
         self._b_g = self._b_g - dx[12:15]
         u.x = np.zeros(_N)
         self._record_update(dx)
+        self._record_fix(fix, height_m, height_sigma_m)
         # the corrected state becomes the checkpoint at the fix time
         self._checkpoints.pop()
         self._checkpoint()
