@@ -238,8 +238,10 @@ class InertialCore:
     :mod:`ins.error_model` propagated alongside, plus a short replay buffer for late fixes.
 
     The INS integrates bias-corrected samples ``omega = omega_meas - b_g_est``, ``f = f_meas - b_a_est``. The
-    covariance is propagated in steps of at most ``cov_step_s`` s: ``F, G, Qc`` at the current state and the mean
-    specific force of the step, ``(Phi, Qd) = discretize(F, G, Qc, dt)`` over exactly that step (Van Loan), then
+    covariance is propagated in steps of at most ``cov_step_s`` s: ``F, G, Qc`` at the current state with the
+    attitude and navigation-frame specific force averaged over the step (:func:`step_matrices`; the end-of-step
+    attitude is wrong by the whole turn of the step), ``(Phi, Qd) = discretize(F, G, Qc, dt)`` over exactly that
+    step (Van Loan), then
     :meth:`_predict_cov` (``Phi P Phi^T + Qd`` here; the UKF overrides it with its unscented prediction).
     (:func:`discretize_fast` is error_model's Van Loan formula with a product-only matrix exponential.)
     At every covariance step a checkpoint (state, covariance, biases, sample count) is kept for ``buffer_s`` s with

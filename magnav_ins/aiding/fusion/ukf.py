@@ -24,6 +24,11 @@ are restored from the last checkpoint before the fix (one per covariance step), 
 IMU samples to the fix time, corrected, and re-propagated to now with the corrected biases
 (:class:`common.InertialCore`). Older fixes are rejected with a reason.
 
+Smoothing (offline, ``keep_history=True``): :meth:`InertialCore.smooth` -- a closed-loop error-state RTS pass
+about the filter's trajectory, then optional relinearised passes about the previous smoothed trajectory (iterated
+smoother, Gauss-Newton); with sparse fixes and a consumer IMU the first pass is limited by the filter's drift
+between fixes (KITTI: 0.86 m single pass, 0.74 m after three passes, the factor graph's batch LM 0.74 m).
+
 Sigma points: ``alpha = 1, beta = 2, kappa = 0`` by default (lambda = 0, no negative central weight; with linear
 ``f``/``h`` the UKF then reproduces the Kalman filter exactly).
 """
@@ -57,7 +62,8 @@ class UkfFuser(InertialCore):
     """Error-state UKF fuser (see the module docstring). ``init``: initial INS state and its 15x15 covariance;
     ``noise``: IMU noise; ``gate_probability``: chi-square gate (None: no gate, e.g. for trusted GNSS fixes); ``cov_step_s``: longest covariance step (s);
     ``buffer_s``: how far back a late fix may be applied (s); ``altitude_hold``: clamp the INS height (m);
-    ``keep_history``: record every covariance step for :meth:`smooth` (RTS smoother, offline)."""
+    ``keep_history``: record every covariance step, IMU sample and accepted fix for :meth:`smooth` (RTS smoother,
+    offline; ``smooth(iterations)``)."""
 
     name = "ukf"
 
