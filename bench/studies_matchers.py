@@ -1,0 +1,230 @@
+"""Matcher acceptance studies (issue 7): Storms' Bayes grid, Wang's PMHT-MM on gravity, Shockley's ML/MLR/ABL.
+
+Runs the example scenarios through the study runner (``magnav-ins run``'s code path) or, with ``--from DIR``, reads
+the ``metrics.json`` and ``runs.nc`` that ``magnav-ins run SCENARIO --out DIR/<stem>`` wrote, and prints Markdown
+tables (``--json``: one JSON line instead):
+
+* Storms hallway: Bayes grid horizontal RMS against Storms' 100-run Monte Carlo bound (< 0.3 m, 004 sec. 4).
+* PMHT gravity: per (IMU, T, sigma) the mean horizontal error, divergence rate and fix availability over the runs,
+  the free-inertial mean error, and the time after which the aided RMS (over runs) stays below the free-inertial
+  RMS; beside it Wang et al. (2022, seed 001) Table 2 (GGplus gravity field map, 250 m grid at 100 m height).
+* Shockley roads: availability, share of fixes within 3 m and RMS per matcher (Shockley ch. IV).
+
+Run: ``python bench/studies_matchers.py [--runs N] [--jobs J] [--only STEM ...] [--out DIR] [--from DIR] [--json]``.
+Defaults: each scenario's own ``runs``; ``--from runs/matchers`` reads what an earlier run wrote there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
+STORMS = "storms_hallway"
+PMHT = ("pmht_gravity_1mgal", "pmht_gravity_20mgal", "pmht_gravity_tactical")
+SHOCKLEY = "shockley_roads"
+DEFAULT = (STORMS, *PMHT, SHOCKLEY)
+FREE = "free_inertial"
+MGAL = 1e-5  # m/s^2
+#: Wang et al. (2022) Table 2 (GGplus vertical gravity field map): (sigma mGal, T) -> (mean error m, divergence %)
+WANG_TABLE2 = {(1.0, 30): (507.0, 0.0), (1.0, 15): (510.0, 0.0), (20.0, 30): (1820.0, 6.0), (20.0, 15): (4199.0, 22.0)}
+STORMS_BOUND_M = 0.3
+
+
+def _run_or_read(stem: str, args: argparse.Namespace) -> tuple[dict[str, Any], Any]:
+    """metrics.json as a dict and runs.nc as an xarray Dataset (or None) for one scenario."""
+    import xarray as xr
+
+    if args.from_dir is not None:
+        d = args.from_dir / stem
+        doc = json.loads((d / "metrics.json").read_text())
+    else:
+        from magnav_ins.studies import runner
+        from magnav_ins.studies.model import PipelineModel
+        from magnav_ins.studies.scenario import load_scenario
+
+        sc = load_scenario(EXAMPLES / f"{stem}.toml")
+        model = PipelineModel(sc)
+        runs = sc.runs if args.runs is None else args.runs
+        d = args.out / stem
+        doc = runner.run_study(model, runs, sc.seed, d, jobs=args.jobs, quiet=True, fmap=model.shared()["map"])
+    nc = d / "runs.nc"
+    return doc, (xr.load_dataset(nc) if nc.exists() else None)
+
+
+def _rms_over_runs(ds: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """Time (s) and RMS over runs of the horizontal error (m) of estimator ``name``."""
+    e = ds.sel(estimator=name)
+    h2 = np.asarray(e["err_north_m"], float) ** 2 + np.asarray(e["err_east_m"], float) ** 2
+    return np.asarray(ds["time"], float), np.sqrt(np.nanmean(h2, axis=0))
+
+
+def crossover_s(ds: Any, name: str) -> float | None:
+    """Earliest time (s) after which the aided RMS over runs stays below the free-inertial RMS (None: never)."""
+    t, a = _rms_over_runs(ds, name)
+    _, f = _rms_over_runs(ds, FREE)
+    worse = np.flatnonzero(~(a < f))
+    if worse.size == 0:
+        return float(t[0])
+    k = worse[-1] + 1
+    return float(t[k]) if k < len(t) else None
+
+
+def _pct(x: float | None) -> str:
+    return "–" if x is None else f"{100 * x:.0f} %"
+
+
+def _m(x: float | None, nd: int = 0) -> str:
+    return "–" if x is None else f"{x:,.{nd}f}"
+
+
+def pmht_rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
+    from magnav_ins.studies.scenario import load_scenario
+
+    sc = load_scenario(EXAMPLES / f"{stem}.toml")
+    sigma = float(sc.sensor.sigma)
+    free = doc["free_inertial"]
+    rows = []
+    for est in sc.estimators:
+        e = doc["estimators"][est.name]
+        T = int(est.matcher.get("batch", 30))
+        cross = crossover_s(ds, est.name) if ds is not None else None
+        wang = WANG_TABLE2.get((sigma, T)) if sc.imu.grade == "precision" else None
+        rows.append(
+            {
+                "scenario": stem,
+                "estimator": est.name,
+                "imu": sc.imu.grade,
+                "hours": round(float(sc.trajectory.duration_s or 0.0) / 3600.0, 2),
+                "T": T,
+                "sigma_mgal": sigma,
+                "runs": doc["runs"],
+                "mean_m": e["mean_horizontal_m"],
+                "rms_m": e["rms_horizontal_m"],
+                "final_m": e["final_horizontal_m"],
+                "divergence_rate": e["divergence_rate"],
+                "availability": e["availability"],
+                "fixes_issued": e["fixes_issued"],
+                "fix_attempts": e["fix_attempts"],
+                "free_mean_m": free["mean_horizontal_m"],
+                "free_final_m": free["final_horizontal_m"],
+                "beats_free": e["mean_horizontal_m"] < free["mean_horizontal_m"],
+                "below_free_after_h": None if cross is None else round(cross / 3600.0, 2),
+                "wang_mean_m": None if wang is None else wang[0],
+                "wang_divergence_pct": None if wang is None else wang[1],
+                "wall_s": doc["wall_s"],
+            }
+        )
+    return rows
+
+
+def pmht_table(rows: list[dict[str, Any]]) -> str:
+    head = (
+        "| IMU | T | sigma (mGal = 1e-5 m/s^2) | runs | mean error (m) | diverged | fixes issued | final (m) "
+        "| free inertial mean / final (m) | aided below free after (h) | Wang Table 2: mean / diverged |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    )
+    lines = [head]
+    for r in rows:
+        wang = "–" if r["wang_mean_m"] is None else f"{r['wang_mean_m']:,.0f} m / {r['wang_divergence_pct']:.0f} %"
+        lines.append(
+            f"| {r['imu']} ({r['hours']:g} h) | {r['T']} | {r['sigma_mgal']:g} | {r['runs']} | {_m(r['mean_m'])} "
+            f"| {_pct(r['divergence_rate'])} | {_pct(r['availability'])} | {_m(r['final_m'])} "
+            f"| {_m(r['free_mean_m'])} / {_m(r['free_final_m'])} "
+            f"| {'never' if r['below_free_after_h'] is None else r['below_free_after_h']} | {wang} |"
+        )
+    return "\n".join(lines)
+
+
+def storms_row(doc: dict[str, Any]) -> dict[str, Any]:
+    e = doc["estimators"]["bayes_grid+ukf"]
+    return {
+        "runs": doc["runs"],
+        "rms_m": e["rms_horizontal_m"],
+        "max_m": e["max_horizontal_m"],
+        "availability": e["availability"],
+        "nees": e["nees_mean"],
+        "free_rms_m": doc["free_inertial"]["rms_horizontal_m"],
+        "pass": e["rms_horizontal_m"] < STORMS_BOUND_M,
+        "wall_s": doc["wall_s"],
+    }
+
+
+def shockley_rows(doc: dict[str, Any]) -> list[dict[str, Any]]:
+    return [
+        {
+            "estimator": n,
+            "runs": doc["runs"],
+            "availability": e["availability"],
+            "fixes_issued": e["fixes_issued"],
+            "within_3m": e["fix_within_3m_fraction"],
+            "bins": e["fix_error_bins"],
+            "rms_m": e["rms_horizontal_m"],
+            "wall_s": doc["wall_s"],
+        }
+        for n, e in doc["estimators"].items()
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default: each scenario's own)")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--only", nargs="*", default=list(DEFAULT), help="scenario file stems")
+    ap.add_argument("--out", type=Path, default=Path("runs/matchers"))
+    ap.add_argument("--from", dest="from_dir", type=Path, default=None, help="read DIR/<stem>/metrics.json instead")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    out: dict[str, Any] = {}
+    md: list[str] = []
+    pmht: list[dict[str, Any]] = []
+    for stem in args.only:
+        doc, ds = _run_or_read(stem, args)
+        if stem == STORMS:
+            r = out[STORMS] = storms_row(doc)
+            md.append(
+                f"### Storms hallway, Bayes grid + UKF ({r['runs']} runs, {r['wall_s']:.0f} s)\n\n"
+                "| estimator | RMS (m) | max (m) | availability | NEES (2-D) | Storms' bound |\n"
+                "|---|---:|---:|---:|---:|---|\n"
+                f"| bayes_grid+ukf | {r['rms_m']:.3f} | {r['max_m']:.2f} | {_pct(r['availability'])} | "
+                f"{r['nees']:.2f} | < 0.3 m: {'pass' if r['pass'] else 'FAIL'} |\n"
+                f"| free inertial | {r['free_rms_m']:.1f} | | | | |\n"
+            )
+        elif stem in PMHT:
+            pmht.extend(pmht_rows(stem, doc, ds))
+        elif stem == SHOCKLEY:
+            rows = out[SHOCKLEY] = shockley_rows(doc)
+            lines = [
+                f"### Shockley roads, ML / MLR / ABL + UKF ({rows[0]['runs']} runs, {rows[0]['wall_s']:.0f} s)\n",
+                "| matcher | availability | fixes issued | fixes < 3 m | 3-10 m | 10-20 m | >= 20 m | RMS (m) |",
+                "|---|---:|---:|---:|---:|---:|---:|---:|",
+            ]
+            for r in rows:
+                b = r["bins"]
+                lines.append(
+                    f"| {r['estimator']} | {_pct(r['availability'])} | {r['fixes_issued']} | {_pct(r['within_3m'])} | "
+                    f"{_pct(b['3_to_10m'])} | {_pct(b['10_to_20m'])} | {_pct(b['ge_20m'])} | {_m(r['rms_m'], 2)} |"
+                )
+            md.append("\n".join(lines) + "\n")
+        else:
+            raise SystemExit(f"studies_matchers: unknown scenario stem {stem!r}; expected one of {DEFAULT}")
+    if pmht:
+        out["pmht"] = pmht
+        walls = ", ".join(
+            f"{s}: {d} runs in {w:.0f} s" for s, d, w in {(r["scenario"], r["runs"], r["wall_s"]) for r in pmht}
+        )
+        md.insert(0 if STORMS not in out else 1, f"### PMHT-MM gravity ({walls})\n\n{pmht_table(pmht)}\n")
+    if args.json:
+        print(json.dumps(out, separators=(",", ":"), default=float))
+    else:
+        print("\n".join(md))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
