@@ -204,7 +204,7 @@ def test_tlog_replay_issues_fixes_and_beats_free_inertial(sim, capsys):
     )  # fmt: skip
     assert rc == 0
     s = json.loads(js.read_text())
-    assert s["fixes_issued"] >= 10 and s["fixes_accepted"] >= 5, s
+    assert s["fixes_issued"] >= 5 and s["fixes_accepted"] >= 3, s
     assert s["init"] == "--init" and s["map_covers_start"] is True
     traj = _read_traj(out)
     assert list(traj) == ["t", "lat_deg", "lon_deg", "h_m", "vn", "ve", "vd", "roll_deg", "pitch_deg", "yaw_deg",

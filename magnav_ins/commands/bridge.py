@@ -71,9 +71,11 @@ def _parse_init(text: str | None) -> tuple[float, float, float, float] | None:
 def run(args: argparse.Namespace) -> int:
     import datetime as _dt
 
+    import numpy as np
+
     from ..aiding.calibration import MagCalibration
     from ..maps.builtin import load_map
-    from ..mavlink.bridge import Bridge, BridgeConfig, ScalarAnomalyModel
+    from ..mavlink.bridge import Bridge, BridgeConfig, ScalarAnomalyModel, warm_up
     from ..mavlink.link import MavLink, load_signing_key
     from ..mavlink.replay import make_online_pipeline
 
@@ -94,6 +96,13 @@ def run(args: argparse.Namespace) -> int:
     calibration = MagCalibration.from_json(args.calibration) if args.calibration else None
     date = args.date or _dt.date.today().isoformat()
     key = load_signing_key(args.signing_key) if args.signing_key else None
+
+    def factory(nav0, sigma_m):
+        return make_online_pipeline(nav0, sigma_m, fmap, grade=args.grade, matcher=args.matcher, fusion=args.fusion)
+
+    logging.info("warming up the compiled kernels (the first run after an install compiles them)")
+    spent = warm_up(factory, fmap, lambda la, lo: float(np.asarray(fmap.value(la, lo)).reshape(-1)[0]))
+    logging.info("warm-up done in %.1f s", spent)
     link = MavLink(
         args.connect,
         baud=args.baud,
@@ -102,9 +111,6 @@ def run(args: argparse.Namespace) -> int:
         peer_component=args.autopilot_compid,
         signing_key=key,
     )
-
-    def factory(nav0, sigma_m):
-        return make_online_pipeline(nav0, sigma_m, fmap, grade=args.grade, matcher=args.matcher, fusion=args.fusion)
 
     bridge = Bridge(link, config, factory, ScalarAnomalyModel(date, calibration))
     logging.info("bridge on %s, map %s, output %s at %.1f Hz", args.connect, args.map, args.output, args.rate)

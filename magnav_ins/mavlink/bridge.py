@@ -442,3 +442,49 @@ def _distance_m(lat0: float, lon0: float, lat1: float, lon1: float) -> float:
     from ..core.frames import horizontal_error_m
 
     return float(horizontal_error_m(lat1, lon1, lat0, lon0))
+
+
+def warm_up(
+    make_pipeline: PipelineFactory,
+    fmap,
+    field_value_at: Callable[[float, float], float] | None = None,
+    rate_hz: float = 100.0,
+    seconds: float = 4.0,
+    reading_interval_s: float = 0.1,
+) -> float:
+    """Run ``make_pipeline``'s pipeline over a few seconds of synthetic at-rest IMU (and map readings) at the map's
+    centre so that every compiled kernel (strapdown, covariance, matcher scans) is compiled or loaded from numba's
+    cache *before* the bridge connects, not when the autopilot's first IMU sample arrives. Returns the seconds spent.
+    A configuration error (unknown matcher, grade, ...) is raised now; anything else is left for the real run to
+    report."""
+    from ..core.errors import MagnavError
+    from ..core.frames import WGS84_OMEGA_E
+    from ..ins.earth import gravity_n
+
+    t0 = time.monotonic()
+    try:
+        lat0, lon0 = _map_centre(fmap)
+        nav = NavState(0.0, lat0, lon0, 300.0, np.zeros(3), q_nb_from_euler(0.0, 0.0, 0.0))
+        pipe = make_pipeline(nav, 30.0)
+        g = gravity_n(lat0, 300.0)
+        accel = np.array([0.0, 0.0, -g[2]])
+        gyro = np.array([WGS84_OMEGA_E * math.cos(lat0), 0.0, -WGS84_OMEGA_E * math.sin(lat0)])
+        value = field_value_at(lat0, lon0) if field_value_at is not None else None
+        next_r = 0.0
+        for k in range(1, int(seconds * rate_hz) + 1):
+            t = k / rate_hz
+            pipe.push_imu(t, gyro, accel)
+            if value is not None and np.isfinite(value) and t >= next_r:
+                pipe.push_reading(t, value)
+                next_r = t + reading_interval_s
+        pipe.estimate()
+    except MagnavError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - warm-up only; the real run reports its own errors
+        log.debug("warm-up: %s", exc)
+    return time.monotonic() - t0
+
+
+def _map_centre(fmap) -> tuple[float, float]:
+    lat_s, lat_n, lon_w, lon_e = fmap.bounds_latlon
+    return 0.5 * (lat_s + lat_n), 0.5 * (lon_w + lon_e)
