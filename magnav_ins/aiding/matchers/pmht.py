@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
-from ._local import WorkFrame, make_frame, map_components, sigma_window, spacing_of
+from ._local import WorkFrame, make_frame, map_components, sigma_window, spacing_of, window_axes
 
 FloatArray = NDArray[np.float64]
 
@@ -314,7 +314,8 @@ class PMHTMatcher:
     ``value_gate`` (multiples of s, ``None`` = no value gate); ``kinematics`` "cv" | "ins"; ``accel_sigma`` m/s^2;
     ``ins_drift_sigma`` m/sqrt(s); ``velocity_sigma`` m/s prior on the CV velocity; ``use_prior``; ``pda_spread``;
     ``map_sigma``; ``min_variability``, ``variability_ref`` (eq. 14 cut-off and weighting); ``max_nis``;
-    ``mode`` "standard" | "retrodiction"; ``resolution_m`` scan step for maps without a native local grid."""
+    ``mode`` "standard" | "retrodiction"; ``resolution_m`` scan step for maps without a native local grid
+    (coarsened so a scan reads at most ``max_scan_nodes`` map values)."""
 
     batch: int = 30
     candidates: int = 20
@@ -340,6 +341,7 @@ class PMHTMatcher:
     variance_factor: bool = True
     detection_prob: float = 0.9
     crlb_floor: bool = True
+    max_scan_nodes: int = 4096
     name: str = "pmht"
 
     def __post_init__(self) -> None:
@@ -391,11 +393,15 @@ class PMHTMatcher:
         grad2 = np.zeros((T, self.candidates))
         counts = np.zeros(T, dtype=np.int64)
         var = np.zeros(T)
+        step_used = step
         for t in range(T):
             if not np.all(np.isfinite(z[t])):
                 continue
-            kn, ke = int(np.ceil(half[t, 0] / step)), int(np.ceil(half[t, 1] / step))
-            gn, ge = np.meshgrid(np.arange(-kn, kn + 1) * step, np.arange(-ke, ke + 1) * step, indexing="ij")
+            # at most max_scan_nodes samples per scan: an elongated gate (one short side) would otherwise be
+            # scanned at a tenth of its short side along its long side (10^4-10^5 map reads per scan)
+            an, ae, st = window_axes(half[t, 0], half[t, 1], step, self.max_scan_nodes)
+            step_used = max(step_used, st)
+            gn, ge = np.meshgrid(an, ae, indexing="ij")
             pn, pe = x_ins[t, 0] + gn.ravel(), x_ins[t, 1] + ge.ravel()
             v = frame.sample(pn, pe).reshape(pn.size, -1)
             centre = v[(gn.size - 1) // 2]
@@ -410,14 +416,10 @@ class PMHTMatcher:
             c = sel.size
             counts[t] = c
             cand[t, :c, 0], cand[t, :c, 1], dist[t, :c] = pn[sel], pe[sel], d[sel]
-            vn = frame.sample(pn[sel] + step, pe[sel]).reshape(c, -1) - frame.sample(pn[sel] - step, pe[sel]).reshape(
-                c, -1
-            )
-            ve = frame.sample(pn[sel], pe[sel] + step).reshape(c, -1) - frame.sample(pn[sel], pe[sel] - step).reshape(
-                c, -1
-            )
-            grad2[t, :c] = np.nan_to_num(np.sum(vn**2 + ve**2, axis=1) / (2 * step) ** 2)
-        return cand, dist, grad2, counts, var, step
+            vn = frame.sample(pn[sel] + st, pe[sel]).reshape(c, -1) - frame.sample(pn[sel] - st, pe[sel]).reshape(c, -1)
+            ve = frame.sample(pn[sel], pe[sel] + st).reshape(c, -1) - frame.sample(pn[sel], pe[sel] - st).reshape(c, -1)
+            grad2[t, :c] = np.nan_to_num(np.sum(vn**2 + ve**2, axis=1) / (2 * st) ** 2)
+        return cand, dist, grad2, counts, var, step_used
 
     # ------------------------------------------------------------------ batch
     def run(self, window: MatchWindow, fmap: FieldMap) -> PMHTResult | str:
