@@ -233,6 +233,10 @@ def step_matrices(
     return discretize_fast(F, G, Qc, dt)
 
 
+#: down position and down velocity (LAYOUT_15), frozen in the covariance under an altitude hold
+_HELD = (2, 5)
+
+
 class InertialCore:
     """Strapdown INS (:class:`ins.strapdown.StrapdownStepper`) with the 15-state error covariance of
     :mod:`ins.error_model` propagated alongside, plus a short replay buffer for late fixes.
@@ -346,7 +350,13 @@ class InertialCore:
         if dt <= 0.0:
             return
         Phi, Qd = step_matrices(self._stepper.nav, self._C_sum, self._fn_sum, self._f_dt, dt, self.noise)
+        held = np.diag(self._P)[list(_HELD)].copy() if self._altitude_hold is not None else None
         self._predict_cov(Phi, Qd)
+        if held is not None:  # the INS holds the altitude: no down error growth (the unstable vertical channel,
+            # e-folding every ~570 s, would otherwise blow the covariance up and leak into the horizontal)
+            self._P[_HELD, :] = 0.0
+            self._P[:, _HELD] = 0.0
+            self._P[_HELD, _HELD] = held
         if self._history is not None:
             self._history.append([self.t, Phi, self._P.copy(), self._P.copy(), np.zeros(15), self._stepper.nav,
                                   self._b_a.copy(), self._b_g.copy()])  # fmt: skip
