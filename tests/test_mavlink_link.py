@@ -118,8 +118,8 @@ def test_foreign_sender_is_dropped():
 
 
 def test_junk_truncated_and_forged_frames_do_not_stop_decoding():
-    """10^4 junk datagrams (random bytes, truncated real frames, frames signed with the wrong key) interleaved with
-    real IMU messages: every real message that reaches the socket is decoded, nothing raises."""
+    """10^5 junk datagrams (random bytes, truncated real frames, frames signed with the wrong key) interleaved with
+    1000 real IMU messages: every real message that reaches the socket is decoded, nothing raises."""
     key = bytes(range(32))
     port = free_udp_port()
     br = L.MavLink(f"udpin:127.0.0.1:{port}", source_system=1, source_component=191, signing_key=key)
@@ -130,7 +130,7 @@ def test_junk_truncated_and_forged_frames_do_not_stop_decoding():
     sent_real = []
     got: list = []
     try:
-        for burst in range(100):
+        for burst in range(1000):
             for _ in range(100):
                 r = rng.random()
                 if r < 0.6:
@@ -138,14 +138,14 @@ def test_junk_truncated_and_forged_frames_do_not_stop_decoding():
                 elif r < 0.8:
                     ap.write_raw(real_frame[: rng.integers(1, len(real_frame) - 1)])
                 else:
-                    forger.send_highres_imu(1000.0 + burst, np.zeros(3), np.array([0, 0, -9.8]), None)
+                    forger.send_highres_imu(5000.0 + burst, np.zeros(3), np.array([0, 0, -9.8]), None)
             t_real = 10.0 + burst
             ap.send_highres_imu(t_real, np.zeros(3), np.array([0, 0, -9.8]), None)
             sent_real.append(t_real)
             got.extend(br.recv(0.0))
         got.extend(collect(br, lambda g: any(isinstance(m, L.ImuMessage) and m.t == sent_real[-1] for m in g), 10.0))
         decoded = {m.t for m in got if isinstance(m, L.ImuMessage)}
-        assert not any(t >= 1000.0 for t in decoded)  # forged frames never pass
+        assert not any(t >= 5000.0 for t in decoded)  # forged frames never pass
         assert sent_real[-1] in decoded
         assert len(decoded & set(sent_real)) >= 0.9 * len(sent_real)  # UDP may drop a few under the flood
         assert br.stats.bad_data > 0 and br.stats.rejected_signature > 0
