@@ -113,6 +113,7 @@ def pmht_rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
                 "fix_attempts": e["fix_attempts"],
                 "free_mean_m": free["mean_horizontal_m"],
                 "free_final_m": free["final_horizontal_m"],
+                "free_divergence_rate": free["divergence_rate"],
                 "beats_free": e["mean_horizontal_m"] < free["mean_horizontal_m"],
                 "below_free_after_h": None if cross is None else round(cross / 3600.0, 2),
                 "wang_mean_m": None if wang is None else wang[0],
@@ -126,7 +127,7 @@ def pmht_rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
 def pmht_table(rows: list[dict[str, Any]]) -> str:
     head = (
         "| IMU | T | sigma (mGal = 1e-5 m/s^2) | runs | mean error (m) | diverged | fixes issued | final (m) "
-        "| free inertial mean / final (m) | aided below free after (h) | Wang Table 2: mean / diverged |\n"
+        "| free inertial mean / final (m), diverged | aided below free after (h) | Wang Table 2: mean / diverged |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     )
     lines = [head]
@@ -135,7 +136,7 @@ def pmht_table(rows: list[dict[str, Any]]) -> str:
         lines.append(
             f"| {r['imu']} ({r['hours']:g} h) | {r['T']} | {r['sigma_mgal']:g} | {r['runs']} | {_m(r['mean_m'])} "
             f"| {_pct(r['divergence_rate'])} | {_pct(r['availability'])} | {_m(r['final_m'])} "
-            f"| {_m(r['free_mean_m'])} / {_m(r['free_final_m'])} "
+            f"| {_m(r['free_mean_m'])} / {_m(r['free_final_m'])}, {_pct(r['free_divergence_rate'])} "
             f"| {'never' if r['below_free_after_h'] is None else r['below_free_after_h']} | {wang} |"
         )
     return "\n".join(lines)
@@ -245,9 +246,8 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit(f"studies_matchers: unknown scenario stem {stem!r}; expected one of {DEFAULT}")
     if pmht:
         out["pmht"] = pmht
-        walls = ", ".join(
-            f"{s}: {d} runs in {w:.0f} s" for s, d, w in {(r["scenario"], r["runs"], r["wall_s"]) for r in pmht}
-        )
+        seen = dict.fromkeys((r["scenario"], r["runs"], r["wall_s"]) for r in pmht)
+        walls = ", ".join(f"{sc}: {n} runs in {w:.0f} s" for sc, n, w in seen)
         md.insert(0 if STORMS not in out else 1, f"### PMHT-MM gravity ({walls})\n\n{pmht_table(pmht)}\n")
     if args.json:
         print(json.dumps(out, separators=(",", ":"), default=float))
