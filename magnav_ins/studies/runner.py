@@ -22,6 +22,7 @@ import json
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -225,9 +226,15 @@ def execute(
         else:
             with ProcessPoolExecutor(max_workers=jobs) as pool:
                 futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
-                for fut in as_completed(futs):
-                    results[futs[fut]] = fut.result()
-                    bar.update(1)
+                try:
+                    for fut in as_completed(futs):
+                        results[futs[fut]] = fut.result()
+                        bar.update(1)
+                except BrokenProcessPool as exc:
+                    raise RuntimeError(
+                        "a worker process died during a Monte Carlo run (killed by the OS, e.g. out of memory); "
+                        "nothing was written - retry with fewer --jobs"
+                    ) from exc
     finally:
         bar.close()
     return [r for r in results if r is not None]
