@@ -85,3 +85,76 @@ def test_unknown_synthetic_map_names_key():
 
     with pytest.raises(ConfigError, match="map.path.*volcano"):
         Mdl.build_map(scenario_from_dict(d))
+
+
+SURVEY = {
+    "name": "s",
+    "trajectory": {
+        "kind": "survey_line",
+        "survey": "builtin:osborne-tie-lines",
+        "line": [10158, 10159],
+        "speed_mps": 70.0,
+    },
+    "imu": {"grade": "navigation", "rate_hz": 5.0},
+    "map": {"path": "builtin:osborne-magnetic", "kind": "total_field_anomaly_nt"},
+    "sensor": {"kind": "scalar_magnetometer", "source": "survey", "sigma": 1e-9, "interval_s": 1.0},
+}
+
+
+def _survey_ne(sc):
+    from magnav_ins.maps.io import read_survey_line
+
+    return {ln: read_survey_line(sc.trajectory.survey, ln) for ln in sc.trajectory.lines}
+
+
+def test_several_survey_lines_are_flown_in_order_with_their_own_readings():
+    """Two adjacent tie lines flown one after the other: the flight passes over every surveyed point of both, in
+    the given order, the second entered from the end nearer the first's end; readings on the lines are the
+    survey's recorded values at the nearest surveyed point (brute force), none on the leg between lines."""
+    sc = scenario_from_dict(SURVEY)
+    assert sc.trajectory.lines == (10158, 10159) and sc.trajectory.line == 10158
+    truth = Mdl.build_truth(sc)
+    lines = _survey_ne(sc)
+    lat0, lon0 = truth.lat[0], truth.lon[0]
+    tn, te = latlon_to_meters(truth.lat - lat0, truth.lon - lon0, lat0)
+    first_pass = {}
+    for ln, p in lines.items():
+        pn, pe = latlon_to_meters(p["lat"] - lat0, p["lon"] - lon0, lat0)
+        d = np.hypot(pn[:, None] - tn[None, :], pe[:, None] - te[None, :])
+        assert d.min(axis=1).max() < 30.0, f"line {ln} not flown over"
+        first_pass[ln] = (truth.t[d.argmin(axis=1)][0], truth.t[d.argmin(axis=1)][-1])
+    # 10158 flown first; 10159 entered from its end nearer 10158's last point
+    assert max(first_pass[10158]) < min(first_pass[10159])
+    end58 = lines[10158]["lat"][-1], lines[10158]["lon"][-1]
+    start59 = lines[10159]["lat"][0], lines[10159]["lon"][0]
+    last59 = lines[10159]["lat"][-1], lines[10159]["lon"][-1]
+    entered_at_start = np.hypot(*latlon_to_meters(start59[0] - end58[0], start59[1] - end58[1], end58[0])) < np.hypot(
+        *latlon_to_meters(last59[0] - end58[0], last59[1] - end58[1], end58[0])
+    )
+    t59 = first_pass[10159]
+    assert (t59[0] < t59[1]) == entered_at_start
+
+    r = Mdl.simulate_readings(sc, truth, None, np.random.default_rng(0))
+    lat = np.interp(r.t, truth.t, truth.lat)
+    lon = np.interp(r.t, truth.t, truth.lon)
+    qn, qe = latlon_to_meters(lat - lat0, lon - lon0, lat0)
+    allp = {k: np.concatenate([p[k] for p in lines.values()]) for k in ("lat", "lon", "value")}
+    pn, pe = latlon_to_meters(allp["lat"] - lat0, allp["lon"] - lon0, lat0)
+    d = np.hypot(qn[:, None] - pn[None, :], qe[:, None] - pe[None, :])
+    assert d.min(axis=1).max() <= Mdl.SURVEY_READING_MAX_OFFSET_M
+    assert np.allclose(r.value, allp["value"][d.argmin(axis=1)], atol=1e-6)
+    # the leg between the lines (and the run-ins) has no readings: a gap of at least the 2 km spacing at 70 m/s
+    assert np.diff(r.t).max() > 2000.0 / 70.0
+    assert len(r.t) < (truth.t[-1] - truth.t[0]) / 1.0 - 2000.0 / 70.0
+
+
+@pytest.mark.parametrize(
+    ("line", "needle"),
+    [([], "non-empty list"), ([10158, 10158], "appears twice"), (["10158"], "expected an integer"), (1.5, "integer")],
+)
+def test_survey_line_list_errors_name_the_key(line, needle):
+    from magnav_ins.core.errors import ConfigError
+
+    d = {**SURVEY, "trajectory": {**SURVEY["trajectory"], "line": line}}
+    with pytest.raises(ConfigError, match=f"trajectory.line.*{needle}|{needle}"):
+        scenario_from_dict(d)

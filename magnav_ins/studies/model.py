@@ -59,7 +59,11 @@ def build_truth(sc: Scenario) -> NavTrajectory:
             traj = simulate.waypoints(pts, tr.speed_mps, rate)
         elif tr.kind == "survey_line":
             line = survey_line_points(sc)
-            traj = simulate.survey_line(line["lat"], line["lon"], line["h"], tr.speed_mps, rate)
+            if len(tr.lines) > 1:
+                lat, lon, h = _with_run_ins(line, SURVEY_RUN_IN_M)
+                traj = simulate.survey_line(lat, lon, h, tr.speed_mps, rate, turn_rate=SURVEY_TURN_RATE)
+            else:
+                traj = simulate.survey_line(line["lat"], line["lon"], line["h"], tr.speed_mps, rate)
         else:
             traj = simulate.trajectory_from_csv(tr.path)  # type: ignore[arg-type]
     except MagnavError as exc:
@@ -70,15 +74,61 @@ def build_truth(sc: Scenario) -> NavTrajectory:
     return traj
 
 
+#: a several-line survey flight overshoots each line end by this much (m) before turning onto the next line
+SURVEY_RUN_IN_M = 1000.0
+#: turn rate between lines of a several-line survey flight (rad/s; 6 deg/s = a rate-two turn: a 670 m radius at
+#: 70 m/s, so the aircraft can reverse onto a line 2 km away)
+SURVEY_TURN_RATE = 6.0 * DEG_TO_RAD
+
+
+def _with_run_ins(line: dict[str, np.ndarray], run_in_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The flight polyline of a several-line survey: each line extended by ``run_in_m`` (m) straight ahead before
+    its first and after its last point, so turns happen off the line. Returns ``lat``, ``lon`` (rad), ``h`` (m)."""
+    from ..core.frames import latlon_to_meters, meters_to_latlon
+
+    lat, lon, h, ids = line["lat"], line["lon"], line["h"], line["line"]
+    out: list[tuple[float, float, float]] = []
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    ends = np.r_[starts[1:], len(ids)]
+    for a, b in zip(starts, ends, strict=True):
+        dn, de = latlon_to_meters(lat[b - 1] - lat[a], lon[b - 1] - lon[a], lat[a])
+        u = np.array([dn, de]) / max(float(np.hypot(dn, de)), 1e-9)  # along-line unit vector (north, east)
+        before = meters_to_latlon(-run_in_m * u[0], -run_in_m * u[1], lat[a], h[a])
+        after = meters_to_latlon(run_in_m * u[0], run_in_m * u[1], lat[b - 1], h[b - 1])
+        out.append((float(lat[a] + before[0]), float(lon[a] + before[1]), float(h[a])))
+        out.extend(zip(lat[a:b], lon[a:b], h[a:b], strict=True))
+        out.append((float(lat[b - 1] + after[0]), float(lon[b - 1] + after[1]), float(h[b - 1])))
+    arr = np.array(out, dtype=float)
+    return arr[:, 0], arr[:, 1], arr[:, 2]
+
+
 def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
-    """The survey line ``[trajectory] line`` of ``survey``: ``lat``, ``lon`` (rad), ``h`` (m), ``value`` (map unit),
-    in along-line order (``maps.io.read_survey_line``)."""
+    """The survey line(s) ``[trajectory] line`` of ``survey`` as one polyline to fly: ``lat``, ``lon`` (rad),
+    ``h`` (m), ``value`` (map unit) and ``line`` (the id of each point).
+
+    One line comes in recorded (along-line) order (``maps.io.read_survey_line``). Several lines are flown one after
+    the other in the order given, each in the direction whose start is nearer the previous line's end (a survey
+    aircraft flies adjacent lines back and forth); the legs between lines have no survey points, so no readings."""
+    from ..core.frames import latlon_to_meters
     from ..maps import io as maps_io
 
-    try:
-        return maps_io.read_survey_line(sc.trajectory.survey, sc.trajectory.line)
-    except MagnavError as exc:
-        raise ConfigError(f"{sc.where('trajectory.line')}: {exc}") from None
+    tr = sc.trajectory
+    ids = tr.lines or (tr.line,)
+    parts: list[dict[str, np.ndarray]] = []
+    for ln in ids:
+        try:
+            p = maps_io.read_survey_line(tr.survey, ln)  # type: ignore[arg-type]
+        except MagnavError as exc:
+            raise ConfigError(f"{sc.where('trajectory.line')}: {exc}") from None
+        if parts:
+            end_lat, end_lon = float(parts[-1]["lat"][-1]), float(parts[-1]["lon"][-1])
+            to_start = np.hypot(*latlon_to_meters(p["lat"][0] - end_lat, p["lon"][0] - end_lon, end_lat))
+            to_end = np.hypot(*latlon_to_meters(p["lat"][-1] - end_lat, p["lon"][-1] - end_lon, end_lat))
+            if to_end < to_start:
+                p = {k: v[::-1] for k, v in p.items()}
+        p["line"] = np.full(len(p["lat"]), int(ln), dtype=np.int64)
+        parts.append(p)
+    return {k: np.concatenate([p[k] for p in parts]) for k in ("lat", "lon", "h", "value", "line")}
 
 
 def build_map(sc: Scenario) -> Any:
@@ -182,7 +232,7 @@ def simulate_readings(sc: Scenario, truth: NavTrajectory, fmap: Any, rng: np.ran
     if s.source == "survey":
         line = survey_line_points(sc)
         # along-line distance of the survey samples and of the truth positions (nearest-point projection)
-        value = _resample_along_line(line, lat, lon)
+        value = _resample_along_line(line, lat, lon, SURVEY_READING_MAX_OFFSET_M)
     else:
         value = np.asarray(fmap.value(lat, lon, h), float)
     ok = np.isfinite(value) if value.ndim == 1 else np.isfinite(value).all(axis=1)
@@ -190,18 +240,37 @@ def simulate_readings(sc: Scenario, truth: NavTrajectory, fmap: Any, rng: np.ran
     return FieldReadings(t[ok], (value + noise)[ok], s.sigma, s.field_kind)
 
 
-def _resample_along_line(line: dict[str, np.ndarray], lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+#: a reading is taken from the survey only where the flown position is within this distance of a surveyed point (m);
+#: elsewhere (the legs between lines of a several-line flight) there is no recorded reading
+SURVEY_READING_MAX_OFFSET_M = 50.0
+
+
+def _resample_along_line(
+    line: dict[str, np.ndarray], lat: np.ndarray, lon: np.ndarray, max_offset_m: float | None = None
+) -> np.ndarray:
+    """The survey's recorded values at the query positions ``lat``, ``lon`` (rad): for each query the nearest
+    surveyed point, then the value interpolated at that point's along-line distance on its own line. With
+    ``max_offset_m``, queries farther than that (m) from every surveyed point get NaN."""
+    from scipy.spatial import cKDTree
+
     from ..core.frames import latlon_to_meters
 
     lat0, lon0 = float(line["lat"][0]), float(line["lon"][0])
     sn, se = latlon_to_meters(line["lat"] - lat0, line["lon"] - lon0, lat0)
     qn, qe = latlon_to_meters(lat - lat0, lon - lon0, lat0)
-    d = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(sn), np.diff(se)))])
-    # nearest survey sample for each query, then its along-line distance
-    from scipy.spatial import cKDTree
-
-    _, idx = cKDTree(np.column_stack([sn, se])).query(np.column_stack([qn, qe]))
-    return np.interp(d[idx], d, line["value"])
+    ids = np.asarray(line.get("line", np.zeros(len(sn), np.int64)))
+    step = np.hypot(np.diff(sn), np.diff(se))
+    step[ids[1:] != ids[:-1]] = 0.0  # along-line distance restarts on each line
+    d = np.concatenate([[0.0], np.cumsum(step)])
+    dist, idx = cKDTree(np.column_stack([sn, se])).query(np.column_stack([qn, qe]))
+    out = np.empty(len(idx), dtype=float)
+    for ln in np.unique(ids[idx]):
+        q = ids[idx] == ln
+        own = ids == ln
+        out[q] = np.interp(d[idx[q]], d[own], line["value"][own])
+    if max_offset_m is not None:
+        out[dist > max_offset_m] = np.nan
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ the model

@@ -100,8 +100,10 @@ class TrajectoryConfig:
 
     ``kind``: ``great_circle`` (``start``, ``end`` [lat, lon] deg, ``altitude_m``, ``speed_mps``), ``waypoints``
     (``points`` [[lat, lon], ...] deg, ``altitude_m``, ``speed_mps``), ``survey_line`` (``survey`` path or
-    ``builtin:NAME``, ``line`` id, ``speed_mps``; altitude from the survey), ``file`` (``path`` CSV).
-    ``duration_s`` (optional) truncates the trajectory.
+    ``builtin:NAME``, ``line`` id or list of ids, ``speed_mps``; altitude from the survey), ``file`` (``path``
+    CSV). ``duration_s`` (optional) truncates the trajectory. ``lines`` holds every line id of a ``survey_line``
+    flight in flying order (``line`` is the first); several lines are flown one after the other, as a survey
+    aircraft flies adjacent lines (:func:`magnav_ins.studies.model.survey_line_points`).
     """
 
     kind: str
@@ -112,6 +114,7 @@ class TrajectoryConfig:
     speed_mps: float | None = None
     survey: str | None = None
     line: int | None = None
+    lines: tuple[int, ...] = ()
     path: str | None = None
     duration_s: float | None = None
 
@@ -347,7 +350,14 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
         kw["points_deg"] = tuple(_latlon(ctx, "trajectory.points", p) for p in pts)
     elif kind == "survey_line":
         kw["survey"] = _path(ctx, "trajectory.survey", t["survey"], base)
-        kw["line"] = _int(ctx, "trajectory.line", t["line"])
+        raw = t["line"]
+        ids = raw if isinstance(raw, list) else [raw]
+        if not ids:
+            raise ctx.error("trajectory.line", "expected a line id or a non-empty list of line ids, got []")
+        kw["lines"] = tuple(_int(ctx, "trajectory.line", x) for x in ids)
+        if len(set(kw["lines"])) != len(kw["lines"]):
+            raise ctx.error("trajectory.line", f"a line id appears twice in {list(kw['lines'])}")
+        kw["line"] = kw["lines"][0]
     else:
         kw["path"] = _path(ctx, "trajectory.path", t["path"], base, allow_spec=False)
     return TrajectoryConfig(**kw)
