@@ -10,6 +10,7 @@ from scipy.ndimage import gaussian_filter1d
 from magnav_ins.aiding.matchers import BayesGridMatcher, LikelihoodMatcher, ParticleFilter, PMHTMatcher
 from magnav_ins.aiding.matchers._local import LocalFrame
 from magnav_ins.aiding.matchers.bayes_grid import _tail_sigma
+from magnav_ins.core.errors import ConfigError
 from magnav_ins.core.protocols import MatchWindow
 from magnav_ins.core.types import FieldReadings
 from magnav_ins.core.units import NT_PER_MILLIGAUSS
@@ -110,6 +111,26 @@ def test_demeaning_removes_a_constant_bias():
     assert np.hypot(*(local(fmap, fix.lat, fix.lon) - truth[-1])) < 2.0
     biased = LikelihoodMatcher(method="ml").match(w, fmap)  # without demeaning the bias wrecks the match
     assert not biased.available or np.hypot(*(local(fmap, biased.lat, biased.lon) - truth[-1])) > 2.0
+
+
+def test_min_fix_sigma_adds_in_quadrature_and_keeps_the_fix():
+    """``min_fix_sigma_m`` adds s^2 I to the fix covariance; the fix position and availability are unchanged."""
+    rng = np.random.default_rng(8)
+    fmap = random_field_map((200, 200), 5.0, 40.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    s = 5.0 * np.arange(20)
+    truth = np.array([500.0, 500.0]) + np.column_stack([s, np.zeros_like(s)])
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 1.0, s.size)
+    w = make_window(
+        fmap, np.arange(float(s.size)), truth, z, 1.0, KIND_TF, np.array([10.0, -8.0]), np.eye(2) * 225, np.zeros(2)
+    )
+    base = LikelihoodMatcher(method="ml", max_fix_sigma_m=1e3).match(w, fmap)
+    floored = LikelihoodMatcher(method="ml", max_fix_sigma_m=1e3, min_fix_sigma_m=50.0).match(w, fmap)
+    assert base.available and floored.available
+    assert (floored.lat, floored.lon) == (base.lat, base.lon)
+    assert np.allclose(floored.cov_ne - base.cov_ne, np.eye(2) * 2500.0)
+    with pytest.raises(ConfigError, match="min_fix_sigma_m"):
+        LikelihoodMatcher(min_fix_sigma_m=-1.0)
 
 
 @pytest.mark.parametrize(("demean", "difference"), [(False, False), (True, False), (False, True), (True, True)])
