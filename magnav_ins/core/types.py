@@ -111,10 +111,24 @@ class StateLayout:
     """Names the slices of an error-state vector, e.g. ``{"pos": slice(0, 3), "vel": slice(3, 6), ...}``.
 
     Position errors are north/east/down metres, velocity errors NED m/s, attitude errors rad (NED tilt),
-    biases in the sensor's SI unit.
+    biases in the sensor's SI unit. Optional blocks a fuser may append (:meth:`extended`): ``s_a``, ``s_g``
+    accelerometer / gyro scale-factor errors (dimensionless, body FRD x, y, z) and ``b_map`` the map-registration
+    bias of the fixes (north, east m).
     """
 
     slices: dict[str, slice]
+
+    def extended(self, **sizes: int) -> StateLayout:
+        """This layout with named blocks of ``sizes`` states appended in keyword order, e.g.
+        ``LAYOUT_15.extended(s_a=3, s_g=3)`` (21 states). Existing slices keep their place."""
+        out = dict(self.slices)
+        n = self.size
+        for name, k in sizes.items():
+            if name in out or int(k) < 1:
+                raise ValueError(f"StateLayout.extended: {name!r} exists already or has no states ({k})")
+            out[name] = slice(n, n + int(k))
+            n += int(k)
+        return StateLayout(out)
 
     @property
     def size(self) -> int:

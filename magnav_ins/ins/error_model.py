@@ -24,7 +24,21 @@ with ``omega_in = omega_ie + omega_en`` (Groves eq. 5.41, 5.44), ``f_n = C_nb f_
 vertical gravity gradient ``d g_D / d D = -d g_D / dh`` (about ``+2 g / R``, the unstable vertical channel).
 Noise ``w = [w_a, w_g, w_ba, w_bg]`` with continuous PSD ``Qc = diag(VRW^2, ARW^2, 2 sigma_a^2 / tau_a,
 2 sigma_g^2 / tau_g)`` (first-order Gauss-Markov driving noise; zero for random-constant biases).
-Scale-factor and misalignment errors are not states of this model (they act through the motion only).
+Misalignment errors are not states of this model (they act through the motion only).
+
+Optional states (:func:`augment_system`, layout ``LAYOUT_15.extended(s_a=3, s_g=3, b_map=2)``, any subset)
+---------------------------------------------------------------------------------------------------------------
+* ``s_a``, ``s_g``: accelerometer / gyro scale-factor errors ``ds = s_est - s`` (dimensionless, body FRD), with
+  the sensor model of :mod:`ins.imu_models` ``f_meas = (I + diag(s_a)) f_b + b_a + w_a`` (gyro likewise) and
+  the INS correction ``f = (f_meas - b_a_est) / (1 + s_a_est)``, so ``f - f_b = -db_a - diag(f_b) ds_a`` to first
+  order (Groves 2013 eq. 14.64 with the scale-factor column of eq. 4.17)::
+
+      d(dv)/dt  += -C_nb diag(f_b) ds_a          d(psi)/dt += -C_nb diag(omega_ib_b) ds_g
+      d(ds)/dt   = -ds / tau_s + w_s             (random constant: tau_s = inf, w_s = 0)
+
+* ``b_map``: the map-registration bias of the position fixes (north, east m): ``z = p_ne + b_map + v``; error
+  ``db_map = b_map_est - b_map`` with ``d(db_map)/dt = -db_map / tau_m + w_m`` (first-order Gauss-Markov,
+  PSD ``2 sigma_m^2 / tau_m``, Gelb 1974 Table 3.8-1). It does not enter the INS dynamics.
 """
 
 from __future__ import annotations
@@ -40,7 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from ..core.errors import InputError
 from ..core.frames import WGS84_A, WGS84_F, WGS84_M, WGS84_OMEGA_E, radii_of_curvature, skew, wrap_angle
-from ..core.types import LAYOUT_15, FloatArray, ImuBatch, NavState, NavTrajectory
+from ..core.types import LAYOUT_15, FloatArray, ImuBatch, NavState, NavTrajectory, StateLayout
 from .earth import gravity_n, omega_en_n, omega_ie_n, somigliana
 from .imu_models import ImuGrade
 
@@ -166,6 +180,82 @@ def bias_psd(grade: ImuGrade, sensor: str) -> FloatArray:
     tau = getattr(grade, f"{sensor}_bias_tau")
     sig = grade.arr(f"{sensor}_bias_sigma")
     return 2.0 * sig**2 / tau if math.isfinite(tau) else np.zeros(3)
+
+
+def augment_system(
+    F: FloatArray,
+    G: FloatArray,
+    Qc: FloatArray,
+    layout: StateLayout,
+    *,
+    C_diag_f: FloatArray | None = None,
+    C_diag_w: FloatArray | None = None,
+    accel_scale_sigma: float = 0.0,
+    gyro_scale_sigma: float = 0.0,
+    scale_tau: float = math.inf,
+    map_sigma: float = 0.0,
+    map_tau: float = math.inf,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``F, G, Qc`` of :func:`system_matrices` (15 states, 12 noises) extended by the optional blocks of ``layout``
+    (``s_a``, ``s_g``, ``b_map``; module docstring), one driving noise per added state (appended in layout order).
+
+    ``C_diag_f`` = ``C_nb diag(f_b)`` (3,3) m/s^2 and ``C_diag_w`` = ``C_nb diag(omega_ib_b)`` (3,3) rad/s (or their
+    averages over a step) are the scale-factor columns of the velocity and tilt rows; ``accel_scale_sigma``,
+    ``gyro_scale_sigma`` (dimensionless) with ``scale_tau`` s give the Gauss-Markov PSD ``2 sigma^2 / tau`` (zero for
+    random constants, ``scale_tau = inf``); ``map_sigma`` m, ``map_tau`` s likewise for ``b_map``."""
+    n = layout.size
+    n0, m0 = F.shape[0], G.shape[1]
+    if n == n0:
+        return F, G, Qc
+    Fa = np.zeros((n, n))
+    Fa[:n0, :n0] = F
+    Ga = np.zeros((n, m0 + n - n0))
+    Ga[:n0, :m0] = G
+    Ga[n0:, m0:] = np.eye(n - n0)
+    q = np.zeros(n - n0)
+
+    def gm(sl: slice, sigma: float, tau: float) -> None:
+        if math.isfinite(tau):
+            Fa[sl, sl] = -np.eye(sl.stop - sl.start) / tau
+            q[sl.start - n0 : sl.stop - n0] = 2.0 * sigma**2 / tau
+
+    if "s_a" in layout:
+        sl = layout["s_a"]
+        if C_diag_f is not None:
+            Fa[_V, sl] = -np.asarray(C_diag_f, float)
+        gm(sl, accel_scale_sigma, scale_tau)
+    if "s_g" in layout:
+        sl = layout["s_g"]
+        if C_diag_w is not None:
+            Fa[_A, sl] = -np.asarray(C_diag_w, float)
+        gm(sl, gyro_scale_sigma, scale_tau)
+    if "b_map" in layout:
+        gm(layout["b_map"], map_sigma, map_tau)
+    Qa = np.zeros((m0 + n - n0, m0 + n - n0))
+    Qa[:m0, :m0] = Qc
+    Qa[m0:, m0:] = np.diag(q)
+    return Fa, Ga, Qa
+
+
+def augment_covariance(
+    P: FloatArray,
+    layout: StateLayout,
+    *,
+    accel_scale_sigma: float = 0.0,
+    gyro_scale_sigma: float = 0.0,
+    map_sigma: float = 0.0,
+) -> FloatArray:
+    """A (15,15) covariance padded to ``layout.size`` with independent priors for the optional blocks: scale
+    factors ``accel_scale_sigma``, ``gyro_scale_sigma`` (dimensionless 1-sigma), ``b_map`` ``map_sigma`` m."""
+    P = np.asarray(P, dtype=float)
+    n, n0 = layout.size, P.shape[0]
+    out = np.zeros((n, n))
+    out[:n0, :n0] = P
+    for name, sig in (("s_a", accel_scale_sigma), ("s_g", gyro_scale_sigma), ("b_map", map_sigma)):
+        if name in layout:
+            sl = layout[name]
+            out[sl, sl] = np.eye(sl.stop - sl.start) * float(sig) ** 2
+    return out
 
 
 def discretize(F: FloatArray, G: FloatArray, Qc: FloatArray, dt: float) -> tuple[FloatArray, FloatArray]:
@@ -306,6 +396,8 @@ def horizontal_sigma(P: FloatArray) -> FloatArray:
 __all__ = [
     "N_STATES",
     "apply_error",
+    "augment_covariance",
+    "augment_system",
     "bias_psd",
     "discretize",
     "horizontal_sigma",

@@ -447,10 +447,19 @@ def _check_matcher(ctx: _Ctx, key: str, spec: dict[str, Any]) -> None:
 
 
 def _check_fusion(ctx: _Ctx, key: str, spec: dict[str, Any]) -> None:
-    from ..aiding.fusion import FUSER_KINDS
+    from ..aiding.fusion import FUSER_KINDS, FUSER_OPTIONS, check_fusion_options
 
     if spec["kind"] not in FUSER_KINDS:
         raise ctx.error(f"{key}.kind", f"unknown fusion {spec['kind']!r}; expected one of {', '.join(FUSER_KINDS)}")
+    opts = {k: v for k, v in spec.items() if k != "kind"}
+    for k in opts:
+        if k not in FUSER_OPTIONS[spec["kind"]]:
+            raise ctx.error(f"{key}.{k}", f"unknown key for fusion {spec['kind']!r}; expected one of "
+                            f"{sorted(FUSER_OPTIONS[spec['kind']])}")  # fmt: skip
+    try:
+        check_fusion_options(spec["kind"], opts)
+    except ConfigError as exc:
+        raise ctx.error(key, str(exc)) from None
 
 
 def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:

@@ -5,14 +5,15 @@ Nothing here imports filterpy or gtsam.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ...core.errors import InputError
+from ...core.errors import ConfigError, InputError
 from ...core.frames import C_en, geodetic_to_ned, latlon_to_meters, ned_to_geodetic, skew
-from ...core.types import Fix, ImuBatch, Innovation, NavEstimate, NavState, NavTrajectory
+from ...core.types import LAYOUT_15, Fix, ImuBatch, Innovation, NavEstimate, NavState, NavTrajectory, StateLayout
 from ...ins.earth import gravity_n
 
 FloatArray = NDArray[np.float64]
@@ -58,6 +59,8 @@ class ImuNoise:
     with time constants ``accel_bias_tau``, ``gyro_bias_tau`` s (``inf``: random constants); ``accel_turn_on``,
     ``gyro_turn_on``: 1-sigma of constant switch-on biases (they only enter the initial covariance). A random-walk
     bias model (GTSAM's CombinedImuFactor) uses the equivalent densities ``sigma * sqrt(2 / tau)``.
+    ``accel_scale_sigma``, ``gyro_scale_sigma``: dimensionless scale-factor 1-sigma, the prior of the optional
+    scale-factor states (:class:`ExtraStates`; unused by the 15-state filters).
     """
 
     accel_noise: float
@@ -68,6 +71,8 @@ class ImuNoise:
     gyro_bias_tau: float = 3600.0
     accel_turn_on: float = 0.0
     gyro_turn_on: float = 0.0
+    accel_scale_sigma: float = 0.0
+    gyro_scale_sigma: float = 0.0
 
     @property
     def accel_bias_rw(self) -> float:
@@ -105,7 +110,7 @@ class ImuNoise:
     @classmethod
     def from_grade(cls, grade: object) -> ImuNoise:
         """From an :class:`magnav_ins.ins.imu_models.ImuGrade` (largest of the three axes for each figure;
-        scale factors and misalignments are not modelled by the 15-state fusers)."""
+        misalignments are not modelled; scale factors only with ``scale_factors=True``, :class:`ExtraStates`)."""
 
         def mx(name: str) -> float:
             return float(np.max(np.asarray(getattr(grade, name), dtype=float)))
@@ -119,7 +124,120 @@ class ImuNoise:
             gyro_bias_tau=float(grade.gyro_bias_tau),
             accel_turn_on=mx("accel_turn_on_sigma"),
             gyro_turn_on=mx("gyro_turn_on_sigma"),
+            accel_scale_sigma=mx("accel_scale_sigma"),
+            gyro_scale_sigma=mx("gyro_scale_sigma"),
         )
+
+
+def _number(key: str, value: object, *, allow_inf: bool) -> float:
+    """``value`` as a positive float, or a :class:`ConfigError` naming ``key`` and the value."""
+    ok = isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, (bool, np.bool_))
+    x = float(value) if ok else math.nan  # type: ignore[arg-type]
+    if not (x > 0 and (math.isfinite(x) or (allow_inf and x == math.inf))):
+        inf = " (inf: random constant)" if allow_inf else ""
+        raise ConfigError(f"fusion option {key}: expected a number > 0{inf}, got {value!r}")
+    return x
+
+
+@dataclass(frozen=True)
+class ExtraStates:
+    """The optional error states of the inertial fusers beyond LAYOUT_15 (:func:`ins.error_model.augment_system`).
+
+    ``scale_factors``: 6 states ``s_a``, ``s_g`` (accelerometer and gyro scale-factor errors, dimensionless, body
+    FRD x, y, z), prior 1-sigma the noise's ``accel_scale_sigma`` / ``gyro_scale_sigma``, random constants
+    (``scale_factor_tau_s = inf``) or first-order Gauss-Markov with that correlation time (s); fed back into the
+    INS correction ``f = (f_meas - b_a) / (1 + s_a)``, ``omega = (omega_meas - b_g) / (1 + s_g)``.
+    ``map_bias_sigma_m`` (None: no state): 2 states ``b_map`` (north, east m), the common registration offset of
+    the map the fixes come from, first-order Gauss-Markov with 1-sigma ``map_bias_sigma_m`` and correlation time
+    ``map_bias_tau_s`` (inf: random constant); a fix measures ``z = p_ne + b_map + v``. ``map_bias_sources``:
+    only fixes whose ``Fix.source`` is one of these see the bias (None: every fix).
+    """
+
+    scale_factors: bool = False
+    scale_factor_tau_s: float = math.inf
+    accel_scale_sigma: float = 0.0
+    gyro_scale_sigma: float = 0.0
+    map_bias_sigma_m: float | None = None
+    map_bias_tau_s: float = 3600.0
+    map_bias_sources: tuple[str, ...] | None = None
+
+    @classmethod
+    def from_options(
+        cls,
+        noise: ImuNoise,
+        *,
+        scale_factors: object = False,
+        scale_factor_tau_s: object = None,
+        map_bias_sigma_m: object = None,
+        map_bias_tau_s: object = None,
+        map_bias_sources: object = None,
+    ) -> ExtraStates:
+        """Validated options (a :class:`ConfigError` names the option and its bad value)."""
+        if not isinstance(scale_factors, (bool, np.bool_)):
+            raise ConfigError(f"fusion option scale_factors: expected true or false, got {scale_factors!r}")
+        sf = bool(scale_factors)
+        if scale_factor_tau_s is not None and not sf:
+            raise ConfigError("fusion option scale_factor_tau_s needs scale_factors = true")
+        sf_tau = math.inf if scale_factor_tau_s is None else _number("scale_factor_tau_s", scale_factor_tau_s,
+                                                                      allow_inf=True)  # fmt: skip
+        if sf and not (noise.accel_scale_sigma > 0 and noise.gyro_scale_sigma > 0):
+            raise ConfigError(
+                "fusion option scale_factors = true needs the IMU's scale-factor sigmas > 0, got accel "
+                f"{noise.accel_scale_sigma}, gyro {noise.gyro_scale_sigma}"
+            )
+        mb = None if map_bias_sigma_m is None else _number("map_bias_sigma_m", map_bias_sigma_m, allow_inf=False)
+        if mb is None and (map_bias_tau_s is not None or map_bias_sources is not None):
+            key = "map_bias_tau_s" if map_bias_tau_s is not None else "map_bias_sources"
+            raise ConfigError(f"fusion option {key} needs map_bias_sigma_m")
+        mb_tau = 3600.0 if map_bias_tau_s is None else _number("map_bias_tau_s", map_bias_tau_s, allow_inf=True)
+        sources = None
+        if map_bias_sources is not None:
+            src = [map_bias_sources] if isinstance(map_bias_sources, str) else map_bias_sources
+            if not isinstance(src, (list, tuple)) or not src or not all(isinstance(x, str) for x in src):
+                raise ConfigError(
+                    f"fusion option map_bias_sources: expected a list of fix sources, got {map_bias_sources!r}"
+                )
+            sources = tuple(src)
+        return cls(sf, sf_tau, float(noise.accel_scale_sigma), float(noise.gyro_scale_sigma), mb, mb_tau, sources)
+
+    @property
+    def layout(self) -> StateLayout:
+        """LAYOUT_15 extended by ``s_a, s_g`` (15:18, 18:21) and/or ``b_map`` (next two)."""
+        extra: dict[str, int] = {}
+        if self.scale_factors:
+            extra.update(s_a=3, s_g=3)
+        if self.map_bias_sigma_m is not None:
+            extra["b_map"] = 2
+        return LAYOUT_15.extended(**extra) if extra else LAYOUT_15
+
+    def biased(self, fix: Fix) -> bool:
+        """Whether ``fix`` measures the map bias."""
+        return self.map_bias_sigma_m is not None and (
+            self.map_bias_sources is None or fix.source in self.map_bias_sources
+        )
+
+    def decay(self, dt: float) -> float:
+        """Gauss-Markov mean decay ``exp(-dt / tau)`` of the map-bias estimate over ``dt`` s."""
+        return math.exp(-dt / self.map_bias_tau_s) if math.isfinite(self.map_bias_tau_s) else 1.0
+
+    def augment(self, F: FloatArray, G: FloatArray, Qc: FloatArray, Cf: FloatArray | None, Cw: FloatArray | None):
+        """:func:`ins.error_model.augment_system` with these options."""
+        from ...ins.error_model import augment_system
+
+        return augment_system(
+            F, G, Qc, self.layout, C_diag_f=Cf, C_diag_w=Cw, accel_scale_sigma=self.accel_scale_sigma,
+            gyro_scale_sigma=self.gyro_scale_sigma, scale_tau=self.scale_factor_tau_s,
+            map_sigma=self.map_bias_sigma_m or 0.0, map_tau=self.map_bias_tau_s,
+        )  # fmt: skip
+
+    def prior(self, P15: FloatArray) -> FloatArray:
+        """A (15,15) prior padded with the optional states' priors (:func:`ins.error_model.augment_covariance`)."""
+        from ...ins.error_model import augment_covariance
+
+        return augment_covariance(
+            P15, self.layout, accel_scale_sigma=self.accel_scale_sigma, gyro_scale_sigma=self.gyro_scale_sigma,
+            map_sigma=self.map_bias_sigma_m or 0.0,
+        )  # fmt: skip
 
 
 def fix_problem(fix: Fix) -> str:
@@ -228,13 +346,23 @@ def discretize_fast(F: FloatArray, G: FloatArray, Qc: FloatArray, dt: float) -> 
 
 
 def step_matrices(
-    nav: NavState, C_sum: FloatArray, fn_sum: FloatArray, sum_dt: float, dt: float, noise: ImuNoise
+    nav: NavState,
+    C_sum: FloatArray,
+    fn_sum: FloatArray,
+    sum_dt: float,
+    dt: float,
+    noise: ImuNoise,
+    extra: ExtraStates | None = None,
+    Cf_sum: FloatArray | None = None,
+    Cw_sum: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """``(Phi, Qd)`` of one covariance step of ``dt`` s ending at ``nav``: ``F, G, Qc`` from
     :func:`ins.error_model.system_matrices` at ``nav``, with the attitude-dependent blocks averaged over the step
     (the first Magnus term of the time-varying ``F``): ``-mean(C_nb)`` for the bias columns and
     ``-[mean(f_n) x]`` for the tilt column, from the step integrals ``C_sum`` = int C_nb dt, ``fn_sum`` =
-    int C_nb f_b dt over ``sum_dt`` s; then Van Loan (:func:`discretize_fast`)."""
+    int C_nb f_b dt over ``sum_dt`` s; then Van Loan (:func:`discretize_fast`). With ``extra`` the optional
+    states are appended (:meth:`ExtraStates.augment`), their scale-factor columns averaged likewise from
+    ``Cf_sum`` = int C_nb diag(f_b) dt and ``Cw_sum`` = int C_nb diag(omega_ib_b) dt."""
     from ...ins.error_model import system_matrices
 
     F, G, Qc = system_matrices(nav.lat, nav.h, nav.v_n, _dcm(nav.q_nb), np.zeros(3), noise)
@@ -243,6 +371,11 @@ def step_matrices(
         F[3:6, 6:9] = -skew(fn_sum / sum_dt)
         F[3:6, 9:12] = -C_mean
         F[6:9, 12:15] = -C_mean
+    if extra is not None and extra.layout.size > 15:
+        ok = sum_dt > 0 and Cf_sum is not None and Cw_sum is not None
+        Cf = Cf_sum / sum_dt if ok else None
+        Cw = Cw_sum / sum_dt if ok else None
+        F, G, Qc = extra.augment(F, G, Qc, Cf, Cw)
     return discretize_fast(F, G, Qc, dt)
 
 
@@ -264,6 +397,12 @@ class InertialCore:
     At every covariance step a checkpoint (state, covariance, biases, sample count) is kept for ``buffer_s`` s with
     the raw samples since the oldest one; :meth:`_rewind` restores the last checkpoint before a past time and returns
     the samples to replay, so a late fix is applied at its own time (re-propagation).
+
+    Optional states (:class:`ExtraStates`; ``scale_factors``, ``scale_factor_tau_s``, ``map_bias_sigma_m``,
+    ``map_bias_tau_s``, ``map_bias_sources``): the layout grows to ``self.layout`` (21, 17 or 23 states), the
+    samples are corrected ``f = (f_meas - b_a_est) / (1 + s_a_est)`` (gyro likewise), the map-bias estimate decays
+    as its Gauss-Markov mean between steps; the initial covariance may be 15x15 (the optional priors are appended)
+    or full size. Without them everything is the 15-state filter, bit for bit.
     """
 
     def __init__(
@@ -275,12 +414,25 @@ class InertialCore:
         buffer_s: float = 120.0,
         altitude_hold: float | None = None,
         keep_history: bool = False,
+        scale_factors: bool = False,
+        scale_factor_tau_s: float | None = None,
+        map_bias_sigma_m: float | None = None,
+        map_bias_tau_s: float | None = None,
+        map_bias_sources: tuple[str, ...] | None = None,
     ) -> None:
         from ...ins.strapdown import StrapdownStepper
 
+        self.extra = ExtraStates.from_options(
+            noise, scale_factors=scale_factors, scale_factor_tau_s=scale_factor_tau_s,
+            map_bias_sigma_m=map_bias_sigma_m, map_bias_tau_s=map_bias_tau_s, map_bias_sources=map_bias_sources,
+        )  # fmt: skip
+        self.layout = self.extra.layout
+        n = self.n_states = self.layout.size
         P0 = np.asarray(init.P, dtype=float)
-        if P0.shape != (15, 15):
-            raise InputError(f"initial covariance must be 15x15 (LAYOUT_15), got {P0.shape}")
+        if P0.shape == (15, 15) and n > 15:
+            P0 = self.extra.prior(P0)
+        if P0.shape != (n, n):
+            raise InputError(f"initial covariance must be 15x15 (LAYOUT_15) or {n}x{n}, got {P0.shape}")
         if not np.all(np.isfinite(P0)):
             raise InputError("initial covariance holds non-finite values")
         if not (cov_step_s > 0 and buffer_s >= 0):
@@ -297,13 +449,17 @@ class InertialCore:
         self._P = symmetrise(P0, 0.0)
         self._b_a = np.zeros(3)
         self._b_g = np.zeros(3)
+        self._s_a = np.zeros(3)  # scale-factor estimates (dimensionless; used with extra.scale_factors only)
+        self._s_g = np.zeros(3)
+        self._b_map = np.zeros(2)  # map-bias estimate, north/east m (with extra.map_bias_sigma_m only)
         self._t_cov = float(init.nav.t)
         self._clear_step_sums()
         self._samples: list[tuple[float, FloatArray, FloatArray]] = []
         self._n_dropped = 0  # samples dropped from the front of the buffer
         self._checkpoints: list[tuple] = []
         self._checkpoint()
-        # smoother history, one entry per covariance step: [t, Phi (from the previous step), P-, P+, dx, nav+, b_a, b_g]
+        # smoother history, one entry per covariance step:
+        # [t, Phi (from the previous step), P-, P+, dx, nav+, b_a, b_g, aux (all estimates behind the layout's 9:n)]
         self._history: list[list] | None = (
             [
                 [
@@ -311,10 +467,11 @@ class InertialCore:
                     None,
                     self._P.copy(),
                     self._P.copy(),
-                    np.zeros(15),
+                    np.zeros(n),
                     self._stepper.nav,
                     self._b_a.copy(),
                     self._b_g.copy(),
+                    self._aux(),
                 ]
             ]  # fmt: skip
             if keep_history
@@ -327,21 +484,57 @@ class InertialCore:
         """Time of the current state, s."""
         return self._stepper.t
 
+    def _aux(self) -> FloatArray:
+        """The estimates behind the error states 9:n of the layout: ``[b_a, b_g(, s_a, s_g)(, b_map)]``."""
+        parts = [self._b_a, self._b_g]
+        if self.extra.scale_factors:
+            parts += [self._s_a, self._s_g]
+        if self.extra.map_bias_sigma_m is not None:
+            parts.append(self._b_map)
+        return np.concatenate(parts)
+
+    def _set_aux(self, aux: FloatArray) -> None:
+        aux = np.asarray(aux, dtype=float)
+        self._b_a, self._b_g = aux[0:3].copy(), aux[3:6].copy()
+        if self.extra.scale_factors:
+            self._s_a, self._s_g = aux[6:9].copy(), aux[9:12].copy()
+        if self.extra.map_bias_sigma_m is not None:
+            self._b_map = aux[-2:].copy()
+
+    def _corrected(self, w: FloatArray, f: FloatArray, aux: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """IMU sample corrected by the estimates ``aux`` (:meth:`_aux` order): ``omega = (w - b_g) / (1 + s_g)``,
+        ``f = (f - b_a) / (1 + s_a)`` (no division without scale-factor states)."""
+        f_c, w_c = f - aux[0:3], w - aux[3:6]
+        if self.extra.scale_factors:
+            f_c, w_c = f_c / (1.0 + aux[6:9]), w_c / (1.0 + aux[9:12])
+        return w_c, f_c
+
+    def _propagate_aux(self, aux: FloatArray, dt: float) -> FloatArray:
+        """The estimates ``aux`` after ``dt`` s: constant, but the map bias decays as its Gauss-Markov mean."""
+        if self.extra.map_bias_sigma_m is None:
+            return aux
+        out = np.array(aux, dtype=float)
+        out[-2:] *= self.extra.decay(dt)
+        return out
+
+    def _fix_rows(self, fix: Fix) -> FloatArray:
+        """``H`` (2, n) of a north/east fix on the error state: ``z = fix - INS - b_map_est = -dp_NE - db_map + v``
+        (the map-bias columns only when the fix measures the bias, :meth:`ExtraStates.biased`)."""
+        Hm = np.zeros((2, self.n_states))
+        Hm[0, 0] = Hm[1, 1] = -1.0
+        if self.extra.biased(fix):
+            b = self.layout["b_map"].start
+            Hm[0, b] = Hm[1, b + 1] = -1.0
+        return Hm
+
     def _checkpoint(self) -> None:
         self._checkpoints.append(
-            (
-                self.t,
-                self._stepper.nav,
-                self._P.copy(),
-                self._b_a.copy(),
-                self._b_g.copy(),
-                self._n_dropped + len(self._samples),
-            )  # fmt: skip
+            (self.t, self._stepper.nav, self._P.copy(), self._aux(), self._n_dropped + len(self._samples))
         )
         t_old = self.t - self.buffer_s
         while len(self._checkpoints) > 1 and self._checkpoints[1][0] <= t_old:
             self._checkpoints.pop(0)
-        drop = self._checkpoints[0][5] - self._n_dropped
+        drop = self._checkpoints[0][4] - self._n_dropped
         if drop > 0:
             del self._samples[:drop]
             self._n_dropped += drop
@@ -351,6 +544,8 @@ class InertialCore:
         it, and its length; the attitude at the step start is re-read from the INS (it may have been corrected)."""
         self._C_sum = np.zeros((3, 3))
         self._fn_sum = np.zeros(3)
+        self._Cf_sum = np.zeros((3, 3))  # int C_nb diag(f_b) dt, int C_nb diag(omega_ib_b) dt (scale-factor columns)
+        self._Cw_sum = np.zeros((3, 3))
         self._f_dt = 0.0
         self._C_prev: FloatArray | None = None
 
@@ -362,7 +557,8 @@ class InertialCore:
         dt = self.t - self._t_cov
         if dt <= 0.0:
             return
-        Phi, Qd = step_matrices(self._stepper.nav, self._C_sum, self._fn_sum, self._f_dt, dt, self.noise)
+        Phi, Qd = step_matrices(self._stepper.nav, self._C_sum, self._fn_sum, self._f_dt, dt, self.noise, self.extra,
+                                self._Cf_sum, self._Cw_sum)  # fmt: skip
         held = np.diag(self._P)[list(_HELD)].copy() if self._altitude_hold is not None else None
         self._predict_cov(Phi, Qd)
         if held is not None:  # the INS holds the altitude: no down error growth (the unstable vertical channel,
@@ -370,23 +566,31 @@ class InertialCore:
             self._P[_HELD, :] = 0.0
             self._P[:, _HELD] = 0.0
             self._P[_HELD, _HELD] = held
+        if self.extra.map_bias_sigma_m is not None:
+            self._b_map = self._b_map * self.extra.decay(dt)
         if self._history is not None:
-            self._history.append([self.t, Phi, self._P.copy(), self._P.copy(), np.zeros(15), self._stepper.nav,
-                                  self._b_a.copy(), self._b_g.copy()])  # fmt: skip
+            self._history.append([self.t, Phi, self._P.copy(), self._P.copy(), np.zeros(self.n_states),
+                                  self._stepper.nav, self._b_a.copy(), self._b_g.copy(), self._aux()])  # fmt: skip
         self._t_cov = self.t
         self._clear_step_sums()
         self._checkpoint()
 
     def _step(self, t: float, w: FloatArray, f: FloatArray) -> None:
         dt = t - self.t
-        f_c = f - self._b_a
+        if self.extra.scale_factors:
+            w_c, f_c = self._corrected(w, f, self._aux())
+        else:
+            w_c, f_c = w - self._b_g, f - self._b_a
         C0 = self._C_prev if self._C_prev is not None else _dcm(self._stepper.nav.q_nb)
-        self._stepper.step_rate(t, w - self._b_g, f_c)
+        self._stepper.step_rate(t, w_c, f_c)
         C1 = _dcm(self._stepper.nav.q_nb)
         C_mid = 0.5 * (C0 + C1)  # attitude over the sample (trapezoid)
         self._C_prev = C1
         self._C_sum += C_mid * dt
         self._fn_sum += C_mid @ f_c * dt
+        if self.extra.scale_factors:
+            self._Cf_sum += C_mid * f_c * dt  # C diag(f): column j scaled by f_j
+            self._Cw_sum += C_mid * w_c * dt
         self._f_dt += dt
         if t - self._t_cov >= self.cov_step_s - 1e-9:
             self._advance_cov()
@@ -398,14 +602,15 @@ class InertialCore:
         cps = [c for c in self._checkpoints if c[0] <= t_past + 1e-9]
         if not cps:
             return None
-        t_c, nav, P, b_a, b_g, n_at = cps[-1]
+        t_c, nav, P, aux, n_at = cps[-1]
         samples = self._samples[n_at - self._n_dropped :]
         del self._samples[n_at - self._n_dropped :]
         while self._checkpoints and self._checkpoints[-1][0] > t_c:
             self._checkpoints.pop()
         self._checkpoints.pop()  # re-created below
         self._stepper.reset(nav)
-        self._P, self._b_a, self._b_g = P.copy(), b_a.copy(), b_g.copy()
+        self._P = P.copy()
+        self._set_aux(aux)
         self._t_cov = t_c
         if self._history is not None:
             while len(self._history) > 1 and self._history[-1][0] > t_c + 1e-9:
@@ -451,16 +656,26 @@ class InertialCore:
             self._step(t, w, f)
 
     def estimate(self) -> NavEstimate:
-        """The current INS state and its LAYOUT_15 error covariance (propagated up to now)."""
+        """The current INS state and its error covariance (propagated up to now) in ``self.layout`` (LAYOUT_15
+        unless optional states were asked for)."""
         self._advance_cov()
-        from ...core.types import LAYOUT_15
-
-        return NavEstimate(self._stepper.nav, self._P.copy(), LAYOUT_15)
+        return NavEstimate(self._stepper.nav, self._P.copy(), self.layout)
 
     @property
     def bias(self) -> tuple[FloatArray, FloatArray]:
         """Current accelerometer (m/s^2) and gyro (rad/s) bias estimates, body FRD."""
         return self._b_a.copy(), self._b_g.copy()
+
+    @property
+    def scale_factor(self) -> tuple[FloatArray, FloatArray]:
+        """Current accelerometer and gyro scale-factor estimates (dimensionless, body FRD; zeros without the
+        ``scale_factors`` states)."""
+        return self._s_a.copy(), self._s_g.copy()
+
+    @property
+    def map_bias(self) -> FloatArray:
+        """Current map-bias estimate, north/east m (zeros without the map-bias state)."""
+        return self._b_map.copy()
 
     def _record_update(self, dx: FloatArray) -> None:
         """Mark the last covariance step as updated by ``dx`` (error estimate before the reset). Several updates at
@@ -468,12 +683,13 @@ class InertialCore:
         the step's total correction of its predicted state is their sum (to first order)."""
         if self._history is not None:
             h = self._history[-1]
-            h[3], h[4], h[5], h[6], h[7] = (
+            h[3], h[4], h[5], h[6], h[7], h[8] = (
                 self._P.copy(),
                 h[4] + dx,
                 self._stepper.nav,
                 self._b_a.copy(),
                 self._b_g.copy(),
+                self._aux(),
             )
 
     def _record_inflated_prior(self) -> None:
@@ -492,13 +708,13 @@ class InertialCore:
         """Rauch-Tung-Striebel smoothing of the recorded run (``keep_history=True``).
 
         Pass 1, in closed-loop error-state form: with ``e`` the error of the filter's corrected state at each
-        covariance step, ``e_s(k) = C_k (e_s(k+1) + dx_{k+1})``, ``C_k = P+_k Phi_k^T (P-_{k+1})^-1``,
+        covariance step (all ``self.layout`` states), ``e_s(k) = C_k (e_s(k+1) + dx_{k+1})``, ``C_k = P+_k Phi_k^T (P-_{k+1})^-1``,
         ``P_s(k) = P+_k + C_k (P_s(k+1) - P-_{k+1}) C_k^T`` (Rauch, Tung & Striebel 1965; ``dx`` is the update's
         error estimate before its reset, zero without a fix). It is linearised about the filter's trajectory,
         which drifts between sparse fixes. Each further pass (``iterations`` > 1) relinearises about the previous
         smoothed trajectory and biases (iterated extended Kalman smoother = Gauss-Newton on the batch problem,
         Bell 1994): :meth:`_relinearised_pass`. Returns the smoothed states at the step times and their
-        covariances (N,15,15)."""
+        covariances (N,n,n)."""
         from ...ins.error_model import apply_error
 
         if self._history is None:
@@ -507,10 +723,11 @@ class InertialCore:
             raise InputError(f"smooth(): iterations must be >= 1, got {iterations}")
         H = self._history
         n = len(H)
-        e = np.zeros(15)
+        n_x = self.n_states
+        e = np.zeros(n_x)
         Ps = H[-1][3].copy()
         out_nav = [H[-1][5]]
-        out_b = [np.r_[H[-1][6], H[-1][7]]]
+        out_b = [H[-1][8]]
         out_P = [Ps]
         for k in range(n - 2, -1, -1):
             Phi, Pm1, dx1 = H[k + 1][1], H[k + 1][2], H[k + 1][4]
@@ -519,7 +736,7 @@ class InertialCore:
             e = C @ (e + dx1)
             Ps = symmetrise(Pp + C @ (Ps - Pm1) @ C.T, 0.0)
             out_nav.append(apply_error(H[k][5], -e[:9]))
-            out_b.append(np.r_[H[k][6], H[k][7]] - e[9:15])
+            out_b.append(H[k][8] - e[9:n_x])
             out_P.append(Ps)
         out_nav.reverse()
         out_b.reverse()
@@ -534,20 +751,23 @@ class InertialCore:
 
     def _relinearised_pass(self, nom: list[NavState], b_nom: list[FloatArray]) -> tuple[list, list, list]:
         """One Kalman filter + RTS pass about a nominal trajectory ``nom`` (NavState at each step time) with
-        nominal biases ``b_nom`` ((6,) ``[b_a, b_g]``, held over the step that starts there).
+        nominal estimates ``b_nom`` ((n-9,) ``[b_a, b_g(, s_a, s_g)(, b_map)]``, :meth:`_aux`, held over the step
+        that starts there; the map bias decays as its mean).
 
         The state is the nominal's error ``e_k = nom_k - truth_k`` (LAYOUT_15). The INS is re-run over each step
         from ``nom_k`` with the samples corrected by ``b_nom_k`` to ``x~_{k+1}``; with the defect
         ``d_{k+1} = x~_{k+1} - nom_{k+1}`` (:func:`ins.error_model.nav_error`; biases ``b_nom_k - b_nom_{k+1}``),
         ``e_{k+1} = Phi_k e_k - d_{k+1} + w_k``, ``(Phi_k, Qd_k)`` from :func:`step_matrices` along the re-run.
         Prior ``e_0 ~ N(nom_0 - init, P0)``. Each logged (accepted) fix: ``z = fix - nom`` (north/east m), ``z = -e[N,E]
-        + v`` (with a height: ``h_src - h_nom = e_D + v``), Joseph update. Then the RTS recursion
+        + v`` (with a map bias: ``z = fix - nom - b_map_nom = -e[N,E] - e[b_map] + v``; with a height:
+        ``h_src - h_nom = e_D + v``), Joseph update. Then the RTS recursion
         ``m_s(k) = m+_k + C_k (m_s(k+1) - m-_{k+1})`` and the new nominal ``nom_k - m_s(k)``. Recovery
         inflation of the online filter is not repeated (the fixes count at their own noise)."""
         from ...ins.error_model import apply_error, nav_error
         from ...ins.strapdown import StrapdownStepper
 
         n = len(nom)
+        n_x = self.n_states
         times = np.array([x.t for x in nom])
         T = np.array([r[0] for r in self._raw]) if self._raw else np.zeros(0)
         fixes: dict[int, list] = {}
@@ -567,18 +787,22 @@ class InertialCore:
                 if prev is not None:
                     st.prime(*prev)
                 C_sum, fn_sum, sum_dt = np.zeros((3, 3)), np.zeros(3), 0.0
+                Cf_sum, Cw_sum = np.zeros((3, 3)), np.zeros((3, 3))
                 C0 = _dcm(nom[k - 1].q_nb)
                 while j < len(T):
                     t_end = min(T[j], times[k])
                     dt = t_end - st.t
                     if dt > 1e-12:
-                        w_c, f_c = self._raw[j][1] - b[3:6], self._raw[j][2] - b[0:3]
+                        w_c, f_c = self._corrected(self._raw[j][1], self._raw[j][2], b)
                         st.step_rate(t_end, w_c, f_c)
                         C1 = _dcm(st.nav.q_nb)
                         C_mid = 0.5 * (C0 + C1)
                         C0 = C1
                         C_sum += C_mid * dt
                         fn_sum += C_mid @ f_c * dt
+                        if self.extra.scale_factors:
+                            Cf_sum += C_mid * f_c * dt
+                            Cw_sum += C_mid * w_c * dt
                         sum_dt += dt
                         prev = (w_c * dt, f_c * dt)
                     if T[j] <= times[k] + 1e-9:
@@ -586,8 +810,9 @@ class InertialCore:
                     if t_end >= times[k] - 1e-9:
                         break
                 end = st.nav
-                Phi, Qd = step_matrices(end, C_sum, fn_sum, sum_dt, times[k] - times[k - 1], self.noise)
-                d = np.r_[nav_error(end, nom[k]), b - b_nom[k]]
+                dt_k = times[k] - times[k - 1]
+                Phi, Qd = step_matrices(end, C_sum, fn_sum, sum_dt, dt_k, self.noise, self.extra, Cf_sum, Cw_sum)
+                d = np.r_[nav_error(end, nom[k]), self._propagate_aux(b, dt_k) - b_nom[k]]
                 m = Phi @ m - d
                 P = symmetrise(Phi @ P @ Phi.T + Qd, 0.0)
                 Phis.append(Phi)
@@ -595,28 +820,29 @@ class InertialCore:
             P_minus.append(P.copy())
             for _, fix, h_m, h_sig in fixes.get(k, []):
                 z = residual_ne(fix, nom[k])
-                Hm = np.zeros((2, 15))
-                Hm[0, 0] = Hm[1, 1] = -1.0
+                if self.extra.biased(fix):
+                    z = z - b_nom[k][-2:]
+                Hm = self._fix_rows(fix)
                 R = np.asarray(fix.cov_ne, float)
                 if h_m is not None:
                     z = np.r_[z, float(h_m) - nom[k].h]
-                    Hm = np.vstack([Hm, np.eye(15)[2]])
+                    Hm = np.vstack([Hm, np.eye(n_x)[2]])
                     R = np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.array([[float(h_sig) ** 2]])]])
                 S = Hm @ P @ Hm.T + R
                 K = np.linalg.solve(S, Hm @ P).T
                 m = m + K @ (z - Hm @ m)
-                IKH = np.eye(15) - K @ Hm
+                IKH = np.eye(n_x) - K @ Hm
                 P = symmetrise(IKH @ P @ IKH.T + K @ R @ K.T, 0.0)
             m_plus.append(m.copy())
             P_plus.append(P.copy())
         ms, Ps = m_plus[-1], P_plus[-1]
-        out_nav, out_b, out_P = [apply_error(nom[-1], -ms[:9])], [b_nom[-1] - ms[9:15]], [Ps]
+        out_nav, out_b, out_P = [apply_error(nom[-1], -ms[:9])], [b_nom[-1] - ms[9:n_x]], [Ps]
         for k in range(n - 2, -1, -1):
             Pm1 = P_minus[k + 1]
             C = np.linalg.solve(Pm1.T, (P_plus[k] @ Phis[k + 1].T).T).T
             ms = m_plus[k] + C @ (ms - m_minus[k + 1])
             Ps = symmetrise(P_plus[k] + C @ (Ps - Pm1) @ C.T, 0.0)
             out_nav.append(apply_error(nom[k], -ms[:9]))
-            out_b.append(b_nom[k] - ms[9:15])
+            out_b.append(b_nom[k] - ms[9:n_x])
             out_P.append(Ps)
         return out_nav[::-1], out_b[::-1], out_P[::-1]

@@ -10,6 +10,14 @@ the interval up to a fix), pushed through the unscented transform. Measurement: 
 ``z = r_fix - r_ins`` (m, NED at the INS position) and ``h(x) = -x[pos N, E]``, noise ``R = fix.cov_ne`` (any SPD
 2x2); with an optional height source ``z`` gains ``-(h_src - h_ins)`` and ``h(x)`` gains ``x[pos D]``.
 
+Optional states (``scale_factors``, ``map_bias_sigma_m``; :class:`common.ExtraStates`,
+:func:`ins.error_model.augment_system`): 6 scale-factor errors ``[ds_a, ds_g]`` (21 states; the velocity and
+tilt rows gain ``-C_nb diag(f_b)`` and ``-C_nb diag(omega_ib_b)``, the estimates are fed back into the IMU
+correction as the biases are) and/or a north/east map-registration bias ``db_map`` (m; a fix then measures
+``z = r_fix - r_ins - b_map_est = -dp_NE - db_map + v``, so fixes sharing the map's offset are correlated in time,
+Gauss-Markov with ``map_bias_tau_s``). The reported innovation is then ``z`` after the map-bias estimate is taken
+off. Without them the filter is the 15-state one above, number for number.
+
 Gating: NIS ``y^T S^-1 y`` against the ``gate_probability`` chi-square quantile (2 dof, 3 with height); a rejected
 fix leaves the filter untouched and its :class:`Innovation` says why. After ``reset_after`` consecutive gate
 rejections the next fix is applied with the navigation covariance inflated so that it sits on the gate (recorded as
@@ -41,21 +49,20 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from ...core.types import Fix, Innovation, NavEstimate
 from ...ins.error_model import apply_error
 from ..gating import ChiSquareGate, nis
-from .common import ImuNoise, InertialCore, fix_problem, rejected, residual_ne, symmetrise
-
-_N = 15
+from .common import ExtraStates, ImuNoise, InertialCore, fix_problem, rejected, residual_ne, symmetrise
 
 
 def _fx(x: np.ndarray, dt: float, Phi: np.ndarray) -> np.ndarray:  # noqa: ARG001 (filterpy's signature)
     return Phi @ x
 
 
-def _hx_ne(x: np.ndarray) -> np.ndarray:
-    return -x[0:2]
+def _hx_ne(x: np.ndarray, H: np.ndarray | None = None) -> np.ndarray:
+    return -x[0:2] if H is None else H @ x
 
 
-def _hx_ned(x: np.ndarray) -> np.ndarray:
-    return np.array([-x[0], -x[1], x[2]])  # z = [dN, dE, h_src - h_ins]; h_ins - h_true = -dp_D
+def _hx_ned(x: np.ndarray, H: np.ndarray | None = None) -> np.ndarray:
+    ne = -x[0:2] if H is None else H @ x
+    return np.array([ne[0], ne[1], x[2]])  # z = [dN, dE, h_src - h_ins]; h_ins - h_true = -dp_D
 
 
 class UkfFuser(InertialCore):
@@ -63,7 +70,8 @@ class UkfFuser(InertialCore):
     ``noise``: IMU noise; ``gate_probability``: chi-square gate (None: no gate, e.g. for trusted GNSS fixes); ``cov_step_s``: longest covariance step (s);
     ``buffer_s``: how far back a late fix may be applied (s); ``altitude_hold``: clamp the INS height (m);
     ``keep_history``: record every covariance step, IMU sample and accepted fix for :meth:`smooth` (RTS smoother,
-    offline; ``smooth(iterations)``)."""
+    offline; ``smooth(iterations)``); ``scale_factors``, ``scale_factor_tau_s`` (s), ``map_bias_sigma_m`` (m),
+    ``map_bias_tau_s`` (s), ``map_bias_sources``: optional states (module docstring, :class:`common.ExtraStates`)."""
 
     name = "ukf"
 
@@ -81,9 +89,19 @@ class UkfFuser(InertialCore):
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
+        scale_factors: bool = False,
+        scale_factor_tau_s: float | None = None,
+        map_bias_sigma_m: float | None = None,
+        map_bias_tau_s: float | None = None,
+        map_bias_sources: tuple[str, ...] | None = None,
     ) -> None:
-        self._points = MerweScaledSigmaPoints(_N, alpha=alpha, beta=beta, kappa=kappa)
-        self._ukf = UnscentedKalmanFilter(dim_x=_N, dim_z=2, dt=1.0, hx=_hx_ne, fx=_fx, points=self._points)
+        self.extra = ExtraStates.from_options(
+            noise, scale_factors=scale_factors, scale_factor_tau_s=scale_factor_tau_s,
+            map_bias_sigma_m=map_bias_sigma_m, map_bias_tau_s=map_bias_tau_s, map_bias_sources=map_bias_sources,
+        )  # fmt: skip
+        n = self._n = self.extra.layout.size
+        self._points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+        self._ukf = UnscentedKalmanFilter(dim_x=n, dim_z=2, dt=1.0, hx=_hx_ne, fx=_fx, points=self._points)
         self.gate_probability = None if gate_probability is None else float(gate_probability)
         self.gate = ChiSquareGate(self.gate_probability, 2)
         self.reset_after = int(reset_after)
@@ -96,6 +114,11 @@ class UkfFuser(InertialCore):
             buffer_s=buffer_s,
             altitude_hold=altitude_hold,
             keep_history=keep_history,
+            scale_factors=scale_factors,
+            scale_factor_tau_s=scale_factor_tau_s,
+            map_bias_sigma_m=map_bias_sigma_m,
+            map_bias_tau_s=map_bias_tau_s,
+            map_bias_sources=map_bias_sources,
         )
 
     def _jitter(self, P: np.ndarray) -> np.ndarray:
@@ -107,7 +130,7 @@ class UkfFuser(InertialCore):
     def _predict_cov(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
         """Unscented prediction of the (zero) error state through ``x <- Phi x`` with noise ``Qd``."""
         u = self._ukf
-        u.x = np.zeros(_N)
+        u.x = np.zeros(self._n)
         u.P = self._jitter(self._P)
         u.Q = Qd
         u.predict(fx=_fx, Phi=Phi)
@@ -143,21 +166,30 @@ class UkfFuser(InertialCore):
         self._advance_cov()
         nav = self._stepper.nav
         res = residual_ne(fix, nav)
+        biased = self.extra.biased(fix)
+        if biased:  # z = fix - INS - b_map_est = -dp_NE - db_map + v
+            res = res - self._b_map
+        H_ne = self._fix_rows(fix) if biased else None
         R = np.asarray(fix.cov_ne, float)
         u = self._ukf
+        n = self._n
         # sigma points of the current covariance (identity prediction, no noise)
-        u.x = np.zeros(_N)
+        u.x = np.zeros(n)
         u.P = self._jitter(self._P)
-        u.Q = np.zeros((_N, _N))
-        u.predict(fx=_fx, Phi=np.eye(_N))
+        u.Q = np.zeros((n, n))
+        u.predict(fx=_fx, Phi=np.eye(n))
         if height_m is not None:
             z = np.r_[res, float(height_m) - nav.h]
             Rz = np.zeros((3, 3))
             Rz[:2, :2] = R
             Rz[2, 2] = float(height_sigma_m) ** 2
-            hx, dim = _hx_ned, 3
+            hx0, dim = _hx_ned, 3
         else:
-            z, Rz, hx, dim = res, R, _hx_ne, 2
+            z, Rz, hx0, dim = res, R, _hx_ne, 2
+
+        def hx(x: np.ndarray) -> np.ndarray:
+            return hx0(x, H_ne)
+
         # innovation covariance by the unscented transform, for the gate (before touching the filter)
         Zs = np.array([hx(s) for s in u.sigmas_f])
         zp = u.Wm @ Zs
@@ -178,7 +210,7 @@ class UkfFuser(InertialCore):
             self._P[:, k] *= np.sqrt(forced)
             self._record_inflated_prior()
             u.P = self._jitter(self._P)
-            u.predict(fx=_fx, Phi=np.eye(_N))
+            u.predict(fx=_fx, Phi=np.eye(n))
             Zs = np.array([hx(s) for s in u.sigmas_f])
             zp = u.Wm @ Zs
             dZ = Zs - zp
@@ -196,9 +228,8 @@ class UkfFuser(InertialCore):
         # closed-loop feedback, then reset the error state
         corrected = apply_error(nav, -dx[:9])
         self._stepper.reset(corrected)
-        self._b_a = self._b_a - dx[9:12]
-        self._b_g = self._b_g - dx[12:15]
-        u.x = np.zeros(_N)
+        self._set_aux(self._aux() - dx[9:n])
+        u.x = np.zeros(n)
         self._record_update(dx)
         self._record_fix(fix, height_m, height_sigma_m)
         # the corrected state becomes the checkpoint at the fix time
