@@ -21,7 +21,7 @@ import numpy as np
 
 from ..core.errors import ConfigError, MagnavError
 from ..core.frames import euler_from_q_nb, meters_to_latlon, q_nb_from_euler
-from ..core.types import FieldReadings, NavEstimate, NavState, NavTrajectory
+from ..core.types import LAYOUT_15, FieldReadings, NavEstimate, NavState, NavTrajectory
 from ..core.units import DEG_TO_RAD
 from .runner import EstimatorOutput, RunOutput
 from .scenario import FREE_INERTIAL, Scenario
@@ -381,6 +381,8 @@ def run_estimator(
         try:
             fopts = {k: v for k, v in est.fusion.items() if k != "kind"}
             fopts.setdefault("altitude_hold", hold)
+            if est.smooth:
+                fopts["keep_history"] = True
             fuser = make_fuser(fkind, prior, noise, **fopts)
             matcher = build_matcher(est.matcher)
             batch = est.matcher.get("batch", getattr(matcher, "batch", None))
@@ -399,10 +401,13 @@ def run_estimator(
         res = pipe.run(imu, readings, output_dt=float(np.min(np.diff(t_out))) if len(t_out) > 1 else 1.0)
     except MagnavError as exc:
         raise ConfigError(f"{where}: {exc}") from None
-    nav = res.trajectory
+    nav, P = res.trajectory, np.asarray(res.P)
+    if j is not None and sc.estimators[j].smooth:  # offline: the RTS-smoothed track replaces the causal one
+        nav, P_all = fuser.smooth(sc.estimators[j].smooth)
+        pos = LAYOUT_15["pos"].start
+        P = np.asarray(P_all)[:, pos : pos + 2, pos : pos + 2]
     lat = np.interp(t_out, nav.t, nav.lat)
     lon = np.interp(t_out, nav.t, np.unwrap(nav.lon))
-    P = np.asarray(res.P)
     cov = np.stack([np.interp(t_out, nav.t, P[:, a, b]) for a in range(2) for b in range(2)], -1).reshape(-1, 2, 2)
     fixes = list(res.fixes)
     return EstimatorOutput(

@@ -172,13 +172,16 @@ class EstimatorConfig:
     ``aiding.matchers.registry.build_matcher``), a fusion spec (``{"kind": "ukf"|"graph"|"free_inertial", options}``,
     ``aiding.fusion.make_fuser``) and the pipeline's ``window`` (readings per batch-matcher window) and
     ``match_every`` (readings between match attempts); both default to the matcher's ``batch`` when it has one
-    (Wang's non-overlapping batches), else 1."""
+    (Wang's non-overlapping batches), else 1. ``smooth``: 0 reports the filter's causal (online) track; N >= 1
+    reports the UKF's Rauch-Tung-Striebel smoothed track instead (N passes: one closed-loop pass, then N - 1
+    relinearised ones; :meth:`magnav_ins.aiding.fusion.ukf.UkfFuser.smooth`), for offline studies."""
 
     name: str
     matcher: dict[str, Any] = field(compare=False)
     fusion: dict[str, Any] = field(compare=False)
     window: int | None = None
     match_every: int | None = None
+    smooth: int = 0
 
     @property
     def matcher_kind(self) -> str:
@@ -472,7 +475,9 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
         p = f"estimator[{i}]"
         if not isinstance(e, dict):
             raise ctx.error(p, "expected an [[estimator]] table")
-        _check_keys(ctx, p, e, {"name", "matcher", "fusion", "window", "match_every"}, {"name", "matcher", "fusion"})
+        _check_keys(
+            ctx, p, e, {"name", "matcher", "fusion", "window", "match_every", "smooth"}, {"name", "matcher", "fusion"}
+        )
         name = _str(ctx, f"{p}.name", e["name"])
         if not name or name == FREE_INERTIAL:
             raise ctx.error(f"{p}.name", f"{name!r} is reserved or empty; the {FREE_INERTIAL} baseline is always added")
@@ -485,7 +490,10 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
         fusion = _spec(ctx, f"{p}.fusion", e["fusion"])
         _check_matcher(ctx, f"{p}.matcher", matcher)
         _check_fusion(ctx, f"{p}.fusion", fusion)
-        out.append(EstimatorConfig(name, matcher, fusion, win, every))
+        smooth = _int(ctx, f"{p}.smooth", e["smooth"], minimum=0) if "smooth" in e else 0
+        if smooth and fusion["kind"] != "ukf":
+            raise ctx.error(f"{p}.smooth", f"smoothing is offered by the ukf fuser only, not {fusion['kind']!r}")
+        out.append(EstimatorConfig(name, matcher, fusion, win, every, smooth))
     return tuple(out)
 
 
