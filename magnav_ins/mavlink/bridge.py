@@ -14,6 +14,12 @@ running, sigma_h <= max        position (healthy)
 IMU stale, sigma_h too large   gps_input: no fix; odometry: not sent; global_position_sensor: UNHEALTHY flag
 ============================  ===========================================================
 
+Height: the INS vertical channel is clamped (``altitude_hold``). With SCALED_PRESSURE from the autopilot the clamp
+follows the barometric height (:mod:`.baro`: ICAO standard atmosphere, referenced to the pressure at
+initialisation, median + line-fit filtered) and the output's down velocity is the baro climb rate; when the pressure
+stops for more than ``baro_stale_s`` the last baro height is held (a STATUSTEXT says so); without any pressure the
+initial height is held, as before.
+
 Timestamps come from the autopilot's ``time_usec``: duplicates and small backward steps are dropped and counted,
 a jump back by more than ``reboot_backstep_s`` is an autopilot reboot (the INS is re-initialised from the last
 estimate with inflated covariance), gaps up to ``max_gap_s`` are bridged, longer gaps mark the solution unhealthy until
@@ -33,7 +39,8 @@ import numpy as np
 
 from ..core.frames import C_nb_from_q, geodetic_to_ned, q_nb_from_euler
 from ..core.types import NavEstimate, NavState
-from .link import AttitudeMessage, Heartbeat, ImuMessage, MavLink, PositionMessage, TimesyncMessage
+from .baro import BaroHeight, hold_height
+from .link import AttitudeMessage, Heartbeat, ImuMessage, MavLink, PositionMessage, PressureMessage, TimesyncMessage
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +84,9 @@ class BridgeConfig:
     request_interval_s: float = 2.0
     global_position_source: str = "magnetic"
     geoid_height_m: float = 0.0  # MSL = ellipsoidal - geoid_height
+    baro: bool = True  # follow SCALED_PRESSURE with the INS height (else hold the initial height)
+    baro_rate_hz: float = 20.0
+    baro_stale_s: float = 2.0
 
     def __post_init__(self) -> None:
         from ..core.errors import ConfigError
@@ -85,6 +95,10 @@ class BridgeConfig:
             raise ConfigError(f"--output {self.output!r}: expected one of {', '.join(OUTPUT_KINDS)}")
         if not (0.5 <= self.output_rate_hz <= 50.0):
             raise ConfigError(f"--rate {self.output_rate_hz}: expected 0.5-50 Hz (ArduPilot wants >= 4 Hz)")
+        if not (1.0 <= self.baro_rate_hz <= 100.0 and self.baro_stale_s > 0):
+            raise ConfigError(
+                f"baro rate {self.baro_rate_hz} Hz / stale time {self.baro_stale_s} s: expected 1-100 Hz and > 0 s"
+            )
         if self.global_position_source not in ("magnetic", "terrain"):
             raise ConfigError(f"global position source {self.global_position_source!r}: expected magnetic or terrain")
 
@@ -105,6 +119,10 @@ class BridgeHealth:
     outputs_sent: int = 0
     untrusted_outputs: int = 0
     link_losses: int = 0
+    pressures: int = 0
+    pressures_rejected: int = 0
+    baro_stale_events: int = 0
+    baro_state: str = "none"  # none (no pressure: initial height held) | active | stale (last baro height held)
     last_imu_t: float = math.nan
     history: list[str] = field(default_factory=list)
 
@@ -146,6 +164,8 @@ class Bridge:
         #: for each output, seconds from the arrival of the newest IMU sample it includes to the send
         self.latencies_s: list[float] = []
         self._last_imu_rx = math.nan
+        self._baro = BaroHeight(stale_s=config.baro_stale_s) if config.baro else None
+        self._baro_unusable_warned = False
 
     # -- the loop ----------------------------------------------------------------------------------------
     def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] | None = None) -> BridgeHealth:
@@ -185,6 +205,8 @@ class Bridge:
             self._last_attitude = msg
         elif isinstance(msg, PositionMessage):
             self._last_position = msg
+        elif isinstance(msg, PressureMessage):
+            self._on_pressure(msg)
         elif isinstance(msg, TimesyncMessage):
             if msg.tc1 == 0:  # a request: answer with our time (ns)
                 self.link.send_timesync(int(self._wall() * 1e9), msg.ts1)
@@ -197,7 +219,10 @@ class Bridge:
     def _request_streams(self) -> None:
         c = self.config
         self._last_request = self._clock()
-        for name, rate in (("HIGHRES_IMU", c.imu_rate_hz), ("ATTITUDE", 10.0), ("GLOBAL_POSITION_INT", 5.0)):
+        streams = [("HIGHRES_IMU", c.imu_rate_hz), ("ATTITUDE", 10.0), ("GLOBAL_POSITION_INT", 5.0)]
+        if c.baro:
+            streams.append(("SCALED_PRESSURE", c.baro_rate_hz))
+        for name, rate in streams:
             self.link.request_message_interval(name, rate, c.autopilot_system, c.autopilot_component)
 
     def _set_state(self, state: str, healthy: bool, reason: str) -> None:
@@ -241,6 +266,7 @@ class Bridge:
             self._restart_from_estimate(m.t, reason=f"IMU gap of {dt:.2f} s", extra_sigma_m=self._speed() * dt)
             self._last_imu_t = m.t
             return
+        self._apply_baro(m.t)
         self._pipeline.push_imu(m.t, m.gyro_b, m.accel_b)
         self._last_imu_t = m.t
         h.imu_samples += 1
@@ -283,7 +309,42 @@ class Bridge:
             self._origin = (lat, lon, hgt)
             if c.output == "odometry":
                 self.link.send_set_gps_global_origin(c.autopilot_system, lat, lon, hgt - c.geoid_height_m)
+        if self._baro is not None:
+            self._baro.set_reference(hgt, m.t)
         self._set_state("running", True, "")
+
+    # -- barometer -------------------------------------------------------------------------------------------
+    def _on_pressure(self, m: PressureMessage) -> None:
+        if self._baro is None:
+            return
+        b = self._baro
+        b.push(m.t, m.pressure_pa)
+        self.health.pressures, self.health.pressures_rejected = b.health.samples, b.health.rejected
+
+    def _apply_baro(self, t: float) -> None:
+        """Move the INS altitude hold to the baro height at IMU time ``t`` (s) before the step to ``t``."""
+        if self._baro is None or self._pipeline is None:
+            return
+        h_baro = self._baro.height(t)
+        state = self._baro.health.state
+        if state != self.health.baro_state:
+            if state == "stale":
+                self.health.baro_stale_events += 1
+                self.link.send_statustext("warning", "magnav: baro lost, height held")
+            elif state == "active" and self.health.baro_state == "stale":
+                self.link.send_statustext("info", "magnav: baro back")
+            self.health.baro_state = state
+        if h_baro is None:
+            return
+        if not hold_height(self._pipeline, h_baro) and not self._baro_unusable_warned:
+            self._baro_unusable_warned = True
+            log.warning("barometer: the pipeline holds no altitude (fusion without altitude hold): baro not used")
+
+    def _baro_climb_rate(self, t: float) -> float | None:
+        """Baro climb rate (m/s, up) while the barometer drives the INS height, else None."""
+        if self._baro is None or self._baro_unusable_warned or not self._baro.referenced:
+            return None
+        return self._baro.climb_rate(t)
 
     def _restart_from_estimate(self, t: float, reason: str, extra_sigma_m: float) -> None:
         """Re-initialise the pipeline at time ``t`` from the current estimate with inflated position uncertainty."""
@@ -353,6 +414,10 @@ class Bridge:
         if self.health.state in ("running", "degraded"):
             self._set_state("running" if trusted else "degraded", trusted, reason)
         nav = est.nav
+        v_n = nav.v_n
+        climb = self._baro_climb_rate(nav.t)
+        if climb is not None:  # the held vertical channel says v_D = 0: send the barometer's rate instead
+            v_n = np.array([v_n[0], v_n[1], -climb])
         cov = np.asarray(est.cov_ne)
         sigma_h = math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)) if np.all(np.isfinite(cov)) else math.inf
         P = np.asarray(est.P)
@@ -369,7 +434,7 @@ class Bridge:
                 lat=nav.lat,
                 lon=nav.lon,
                 h_msl=h_msl,
-                v_n=nav.v_n,
+                v_n=v_n,
                 sigma_h=sigma_h,
                 sigma_v=sigma_v,
                 sigma_speed=sigma_speed,
@@ -380,7 +445,7 @@ class Bridge:
                 return  # ODOMETRY has no "invalid" flag ArduPilot honours: send nothing
             assert self._origin is not None
             r_ned = geodetic_to_ned(nav.lat, nav.lon, nav.h, *self._origin)
-            v_b = C_nb_from_q(nav.q_nb).T @ nav.v_n
+            v_b = C_nb_from_q(nav.q_nb).T @ v_n
             self.link.send_odometry(
                 t_usec=int(nav.t * 1e6),
                 r_ned=r_ned,

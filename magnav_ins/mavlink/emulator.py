@@ -2,7 +2,8 @@
 
 It plays a simulated flight over a map as an ArduPilot-like autopilot would: HEARTBEAT at 1 Hz, HIGHRES_IMU at the
 IMU rate (magnetometer in ArduPilot's milligauss x 1000 scale), ATTITUDE and GLOBAL_POSITION_INT at 5 Hz (for the
-bridge's initialisation), paced to the wall clock (or faster by ``speedup``). It records every position message the
+bridge's initialisation), optionally SCALED_PRESSURE from the truth height (ICAO standard atmosphere plus white
+noise), paced to the wall clock (or faster by ``speedup``). It records every position message the
 bridge sends back, so a test can compare them with the truth. Runs in a background thread; MAVLink goes through
 :mod:`.link` (the only pymavlink import).
 """
@@ -47,13 +48,18 @@ class EmulatorRecord:
     first_heartbeat_s: float | None = None
     first_output_s: float | None = None
     imu_sent: int = 0
+    pressure_sent: int = 0
 
 
 class AutopilotEmulator:
     """Streams ``imu`` (and ``mag_b_nt``) from ``truth`` over ``link`` in a background thread.
 
     ``speedup`` > 1 plays faster than real time; ``send_position`` sends GLOBAL_POSITION_INT + ATTITUDE from the truth
-    (as an autopilot with a GNSS fix before it is lost would); ``t0_usec`` is the autopilot clock at the first sample.
+    (as an autopilot with a GNSS fix before it is lost would). ``pressure_rate_hz`` (None: no barometer) sends
+    SCALED_PRESSURE at about that rate on the autopilot clock (at the first IMU sample at or after each due time):
+    the ISA pressure of the truth height (:func:`magnav_ins.core.atmosphere.isa_pressure_pa`, the height taken as
+    above the standard-pressure level) plus white noise of ``pressure_noise_pa`` Pa (1-sigma; 2 Pa, about 0.17 m, is
+    an MS5611-class sensor), drawn from ``seed``.
     """
 
     def __init__(
@@ -67,6 +73,9 @@ class AutopilotEmulator:
         send_position: bool = True,
         loop: bool = False,
         stream_on_request: bool = True,
+        pressure_rate_hz: float | None = None,
+        pressure_noise_pa: float = 2.0,
+        seed: int = 0,
     ) -> None:
         if len(truth) != len(imu):
             raise ValueError("truth and imu must have the same samples")
@@ -86,6 +95,20 @@ class AutopilotEmulator:
         self._reboot_requested = False
         self._dropout_s = 0.0  # pending request: skip this many seconds of samples
         self._drop_until = -np.inf
+        self._pressure_pause_s = 0.0  # pending request: send no pressure for this many seconds
+        self._no_pressure_until = -np.inf
+        self.pressure_rate_hz = pressure_rate_hz
+        self.pressure_noise_pa = float(pressure_noise_pa)
+        self._rng = np.random.default_rng(seed)
+        self._pressure_pa: np.ndarray | None = None
+        self._temperature_c: np.ndarray | None = None
+        if pressure_rate_hz is not None:
+            from ..core.atmosphere import isa_pressure_pa, isa_temperature_k
+
+            if not (0.0 < pressure_rate_hz <= 200.0):
+                raise ValueError(f"pressure_rate_hz must be in (0, 200] Hz, got {pressure_rate_hz}")
+            self._pressure_pa = np.asarray(isa_pressure_pa(truth.h), float)
+            self._temperature_c = np.asarray(isa_temperature_k(truth.h), float) - 273.15
         self.started_at = 0.0
 
     def start(self) -> AutopilotEmulator:
@@ -129,6 +152,7 @@ class AutopilotEmulator:
         k = 0
         next_hb = 0.0
         next_pos = 0.0
+        next_press = -np.inf
         wall0 = time.monotonic()
         sim0 = t[0]
         while not self._stop.is_set():
@@ -166,6 +190,19 @@ class AutopilotEmulator:
                         ts, self.truth.lat[k], self.truth.lon[k], self.truth.h[k], self.truth.v_n[k]
                     )
                     next_pos = ts + 0.2
+                if self._pressure_pa is not None and ts < next_press - 1.0:  # the clock went back (reboot)
+                    next_press = ts
+                if self._pressure_pa is not None and ts >= next_press:
+                    if self._pressure_pause_s > 0.0:
+                        self._no_pressure_until = ts + self._pressure_pause_s
+                        self._pressure_pause_s = 0.0
+                    if ts >= self._no_pressure_until:
+                        p = self._pressure_pa[k] + self._rng.normal(0.0, self.pressure_noise_pa)
+                        assert self._temperature_c is not None
+                        self.link.send_scaled_pressure(ts, float(p), float(self._temperature_c[k]))
+                        self.record.pressure_sent += 1
+                    dt_p = 1.0 / self.pressure_rate_hz  # type: ignore[operator]
+                    next_press = next_press + dt_p if next_press + dt_p > ts else ts + dt_p
                 k += 1
             if time.monotonic() >= next_hb:
                 self.link.send_heartbeat(autopilot=True)
@@ -176,6 +213,10 @@ class AutopilotEmulator:
     def dropout(self, duration_s: float) -> None:
         """Lose the next ``duration_s`` seconds of IMU samples (the flight goes on; the bridge sees a gap)."""
         self._dropout_s = float(duration_s)
+
+    def pause_pressure(self, duration_s: float) -> None:
+        """Send no SCALED_PRESSURE for the next ``duration_s`` seconds of flight (the IMU goes on)."""
+        self._pressure_pause_s = float(duration_s)
 
     def reboot(self) -> None:
         """Make the autopilot clock jump back to about 1 s, as after a reboot (the flight itself continues)."""
@@ -205,10 +246,19 @@ def flight_over_map(
     seed: int = 1,
     date: str = "2024-06-01",
     mag_noise_nt: float = 1.0,
+    climb_m: float = 0.0,
+    climb_window_s: tuple[float, float] = (0.0, 60.0),
 ) -> EmulatedFlight:
-    """A straight, level flight (``speed_mps`` 0 = at rest) from ``start`` (lat, lon rad) on ``heading`` (rad) over a
+    """A straight flight (``speed_mps`` 0 = at rest) from ``start`` (lat, lon rad) on ``heading`` (rad) over a
     total-field anomaly map: ideal IMU from inverse mechanisation, ``grade``'s errors injected, and the body-frame
-    magnetometer = IGRF main field + the map's anomaly along it + white noise. Reproducible from ``seed``."""
+    magnetometer = IGRF main field + the map's anomaly along it + white noise. Reproducible from ``seed``.
+
+    Level at ``altitude_m`` (m), unless ``climb_m`` (m, negative: descend) is given: then the height changes by
+    ``climb_m`` between the times ``climb_window_s`` (s from the start) along a half cosine,
+    ``h = altitude_m + climb_m (1 - cos(pi u)) / 2`` with ``u`` the fraction of the window (zero vertical speed and
+    peak rate ``pi climb_m / (2 T)`` mid-window), body kept level (a multicopter's climb); position and velocity stay
+    consistent (the horizontal track is computed at ``altitude_m``; the 1e-5 relative difference of the radii is
+    ignored)."""
     from ..core.frames import meters_to_latlon
     from ..ins.imu_models import corrupt, get_grade
     from ..ins.simulate import great_circle, ideal_imu, stationary
@@ -224,6 +274,17 @@ def flight_over_map(
         truth = great_circle(lat0, lon0, lat0 + float(dlat), lon0 + float(dlon), altitude_m, speed_mps, rate_hz)
         n = int(round(duration_s * rate_hz)) + 1
         truth = truth.slice(0, min(n, len(truth)))
+    if climb_m != 0.0:
+        from ..core.types import NavTrajectory
+
+        t_a, t_b = (float(x) for x in climb_window_s)
+        if not (0.0 <= t_a < t_b):
+            raise ValueError(f"climb_window_s must be (start, end) with 0 <= start < end, got {climb_window_s}")
+        u = np.clip((truth.t - truth.t[0] - t_a) / (t_b - t_a), 0.0, 1.0)
+        h = altitude_m + climb_m * 0.5 * (1.0 - np.cos(np.pi * u))
+        v_n = truth.v_n.copy()
+        v_n[:, 2] = -climb_m * np.pi / (2.0 * (t_b - t_a)) * np.sin(np.pi * u)
+        truth = NavTrajectory(truth.t, truth.lat, truth.lon, h, v_n, truth.q_nb)
     imu, _ = corrupt(ideal_imu(truth), get_grade(grade), rng)
     main = igrf_ned(lat0, lon0, altitude_m, date).reshape(3)
     anomaly = np.asarray(fmap.value(truth.lat, truth.lon), float)

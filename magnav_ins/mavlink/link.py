@@ -114,6 +114,9 @@ class PositionMessage:
 
 @dataclass(frozen=True)
 class PressureMessage:
+    """SCALED_PRESSURE: ``t`` s on the autopilot clock (``time_boot_ms``), static ``pressure_pa`` Pa (the message
+    carries hPa), ``temperature_c`` degC."""
+
     t: float
     pressure_pa: float
     temperature_c: float
@@ -717,9 +720,19 @@ class MavLink:
             )
         )
 
+    def send_scaled_pressure(self, t: float, pressure_pa: float, temperature_c: float = 15.0) -> None:
+        """SCALED_PRESSURE: ``t`` s (sent as ``time_boot_ms``), static pressure Pa (sent as hPa), temperature degC."""
+        self._send(lambda: self.mav.send(_scaled_pressure(self.mav, t, pressure_pa, temperature_c)))
+
     def write_raw(self, data: bytes) -> None:
         """Write raw bytes on the link (tests: junk and truncated frames)."""
         self._send(lambda: self._conn.write(data))
+
+
+def _scaled_pressure(mav, t: float, pressure_pa: float, temperature_c: float):
+    return mav.scaled_pressure_encode(
+        int(round(t * 1e3)) & 0xFFFFFFFF, float(pressure_pa) / 100.0, 0.0, int(round(temperature_c * 100.0)), 0
+    )
 
 
 def iter_tlog(path: str | os.PathLike[str]) -> Iterator[object]:
@@ -753,7 +766,7 @@ def iter_tlog(path: str | os.PathLike[str]) -> Iterator[object]:
 
 def write_tlog(
     path: str | os.PathLike[str],
-    messages: Iterable[ImuMessage | AttitudeMessage | PositionMessage],
+    messages: Iterable[ImuMessage | AttitudeMessage | PositionMessage | PressureMessage],
     *,
     ardupilot_mag_scale: bool = True,
     t_unix0: float = 1.6e9,
@@ -762,7 +775,7 @@ def write_tlog(
 
     Each message is encoded as the autopilot would send it (ImuMessage -> HIGHRES_IMU, with the magnetometer in
     ArduPilot's milligauss x 1000 when ``ardupilot_mag_scale``; AttitudeMessage -> ATTITUDE; PositionMessage ->
-    GLOBAL_POSITION_INT with ``h_msl``) and stored as pymavlink's tlog record: the receive time as an 8-byte
+    GLOBAL_POSITION_INT with ``h_msl``; PressureMessage -> SCALED_PRESSURE) and stored as pymavlink's tlog record: the receive time as an 8-byte
     big-endian count of microseconds since the Unix epoch (``t_unix0 + t``), then the frame. Written atomically.
     """
     import struct
@@ -802,6 +815,8 @@ def write_tlog(
                 *(int(round(v * 100)) for v in m.v_n),
                 65535,
             )
+        elif isinstance(m, PressureMessage):
+            msg = _scaled_pressure(mav, m.t, m.pressure_pa, m.temperature_c)
         else:
             raise InputError(f"write_tlog: cannot encode {type(m).__name__}")
         out += struct.pack(">Q", int(round((t_unix0 + m.t) * 1e6))) + msg.pack(mav)

@@ -12,7 +12,9 @@ Three parts:
 * :func:`replay` - feed the recording sample by sample to the pipeline exactly as the bridge does (IMU samples to
   ``push_imu``; magnetometer vectors, decimated to ``reading_interval_s``, through
   :class:`.bridge.ScalarAnomalyModel` to ``push_reading``) and collect the fused trajectory, the fixes and
-  innovations; when the log holds GNSS, the horizontal error against it.
+  innovations; when the log holds GNSS, the horizontal error against it. When the log holds static pressure
+  (ULog ``vehicle_air_data`` or ``sensor_baro``, tlog SCALED_PRESSURE, CSV ``pressure_pa``) the INS height follows
+  the barometric height as in the bridge (:mod:`.baro`).
 
 Frames and units: IMU body FRD, gyro rad/s (mean rate over the interval ending at ``t``), specific force m/s^2;
 magnetometer nT body; positions rad and ellipsoidal metres; times s on the log's clock. PX4 quaternions are
@@ -22,6 +24,7 @@ scalar-first (w, x, y, z) and are converted to our scalar-last here and nowhere 
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from collections import Counter
@@ -37,6 +40,9 @@ from ..core.errors import ConfigError, InputError
 from ..core.frames import horizontal_error_m, q_nb_from_euler
 from ..core.types import Fix, ImuBatch, Innovation, NavEstimate, NavState
 from ..core.units import NT_PER_GAUSS
+from .baro import BaroHeight, hold_height
+
+log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
@@ -44,6 +50,7 @@ ULOG_MAGIC = b"ULog"
 #: CSV recording columns (mag_* optional): t s, gyro rad/s, accel m/s^2 specific force (body FRD), mag nT (body)
 CSV_IMU_COLUMNS = ("t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
 CSV_MAG_COLUMNS = ("mag_x", "mag_y", "mag_z")
+CSV_PRESSURE_COLUMN = "pressure_pa"  #: optional static pressure column, Pa (blank rows: no sample)
 #: trajectory CSV written by ``magnav-ins replay``
 TRAJ_COLUMNS = (
     "t",
@@ -98,8 +105,9 @@ def make_online_pipeline(
     reading in the map's unit (sensor noise and uncompensated vehicle field); ``window`` / ``match_every``: readings
     per batch-matcher window and between match attempts (:class:`~magnav_ins.pipeline.Pipeline`);
     ``velocity_sigma_mps`` (m/s) and ``attitude_sigma_rad`` (roll, pitch, yaw, rad): initial 1-sigmas;
-    ``altitude_hold``: clamp the INS height to ``nav0.h`` (no barometer in the loop yet; the free vertical channel
-    diverges in minutes). Returns a :class:`~magnav_ins.pipeline.Pipeline` (``push_imu``, ``push_reading``,
+    ``altitude_hold``: clamp the INS height to ``nav0.h`` (the free vertical channel diverges in minutes); the
+    bridge and :func:`replay` move the clamp to the barometric height when pressure arrives
+    (:func:`.baro.hold_height`). Returns a :class:`~magnav_ins.pipeline.Pipeline` (``push_imu``, ``push_reading``,
     ``estimate``).
     """
     from ..aiding.fusion import ImuNoise, make_fuser
@@ -163,7 +171,9 @@ class AttitudeTrack:
 class LogRecording:
     """A recording in SI: ``imu`` (body FRD), magnetometer ``mag_t`` (M,) s and ``mag_b_nt`` (M,3) nT body (empty
     when the log has none), optional ``gnss`` and ``attitude``; ``fmt`` "ulog" | "tlog" | "csv"; ``sources`` says
-    which topic or message each part came from (for messages); ``notes`` what the reader dropped and why."""
+    which topic or message each part came from (for messages); ``notes`` what the reader dropped and why;
+    ``baro_t`` (K,) s and ``baro_pa`` (K,) static pressure Pa (empty without a barometer; implausible samples are
+    kept here and dropped and counted by the replay's :class:`.baro.BaroHeight`)."""
 
     path: Path
     fmt: str
@@ -174,6 +184,8 @@ class LogRecording:
     attitude: AttitudeTrack | None = None
     sources: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
+    baro_t: FloatArray = field(default_factory=lambda: np.zeros(0))
+    baro_pa: FloatArray = field(default_factory=lambda: np.zeros(0))
 
 
 def _check_series(path: Path, what: str, t: FloatArray, values: dict[str, FloatArray], *, strict: bool) -> None:
@@ -274,16 +286,37 @@ def _read_ulog(p: Path) -> LogRecording:
         q_nb = q_wxyz[:, [1, 2, 3, 0]]  # PX4 scalar-first -> ours scalar-last
         attitude = AttitudeTrack(a["t"], q_nb / np.linalg.norm(q_nb, axis=1, keepdims=True))
         sources["attitude"] = "vehicle_attitude"
-    return LogRecording(p, "ulog", imu, mag_t, mag, gnss, attitude, sources)
+    baro_t, baro_pa = _ulog_baro(p, sources)
+    return LogRecording(p, "ulog", imu, mag_t, mag, gnss, attitude, sources, baro_t=baro_t, baro_pa=baro_pa)
+
+
+def _ulog_baro(p: Path, sources: dict[str, str]) -> tuple[FloatArray, FloatArray]:
+    """Static pressure (Pa) from ``vehicle_air_data.baro_pressure_pa``, else ``sensor_baro.pressure`` (hPa in PX4
+    before v1.14, Pa after: told apart by the magnitude); empty without either."""
+    from .ulog import read_ulog_topic
+
+    for topic, name in (("vehicle_air_data", "baro_pressure_pa"), ("sensor_baro", "pressure")):
+        try:
+            d = read_ulog_topic(p, topic, [name])
+        except InputError:
+            continue
+        if len(d["t"]):
+            pa = d[name]
+            if topic == "sensor_baro" and np.nanmedian(pa) < 2000.0:
+                pa = pa * 100.0
+            sources["baro"] = topic
+            return d["t"], pa
+    return np.zeros(0), np.zeros(0)
 
 
 def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
-    from .link import AttitudeMessage, ImuMessage, PositionMessage, iter_tlog
+    from .link import AttitudeMessage, ImuMessage, PositionMessage, PressureMessage, iter_tlog
 
     imu_rows: list[tuple] = []
     mag_rows: list[tuple] = []
     att_rows: list[tuple] = []
     pos_rows: list[tuple] = []
+    baro_rows: list[tuple[float, float]] = []
     imu_source = ""
     for m in iter_tlog(p):
         if isinstance(m, ImuMessage):
@@ -297,6 +330,8 @@ def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
             att_rows.append((m.t, m.roll, m.pitch, m.yaw))
         elif isinstance(m, PositionMessage):
             pos_rows.append((m.t, m.lat, m.lon, m.h_msl + geoid_height_m, *m.v_n))
+        elif isinstance(m, PressureMessage):
+            baro_rows.append((m.t, m.pressure_pa))
     if not imu_rows:
         raise InputError(f"{p}: no IMU messages (HIGHRES_IMU, SCALED_IMU or RAW_IMU) in the telemetry log")
     im = np.asarray(imu_rows, float)
@@ -326,7 +361,12 @@ def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
         _check_series(p, "message ATTITUDE", at[:, 0], {"attitude": at[:, 1:4]}, strict=False)
         attitude = AttitudeTrack(at[:, 0], q_nb_from_euler(at[:, 1], at[:, 2], at[:, 3]).reshape(-1, 4))
         sources["attitude"] = "ATTITUDE"
-    return LogRecording(p, "tlog", imu, mg[:, 0], mg[:, 1:4], gnss, attitude, sources, tuple(notes))
+    br = np.asarray(baro_rows, float).reshape(-1, 2)
+    if len(br):
+        sources["baro"] = "SCALED_PRESSURE"
+    return LogRecording(
+        p, "tlog", imu, mg[:, 0], mg[:, 1:4], gnss, attitude, sources, tuple(notes), baro_t=br[:, 0], baro_pa=br[:, 1]
+    )
 
 
 def _read_csv(p: Path) -> LogRecording:
@@ -365,7 +405,20 @@ def _read_csv(p: Path) -> LogRecording:
     imu = ImuBatch(a[:, 0], a[:, 1:4], a[:, 4:7])
     mag_t = a[:, 0] if has_mag else np.zeros(0)
     mag = a[:, 7:10] if has_mag else np.zeros((0, 3))
-    return LogRecording(p, "csv", imu, mag_t, mag, None, None, {"imu": "CSV", **({"mag": "CSV"} if has_mag else {})})
+    sources = {"imu": "CSV", **({"mag": "CSV"} if has_mag else {})}
+    baro_t, baro_pa = np.zeros(0), np.zeros(0)
+    if CSV_PRESSURE_COLUMN in cols:
+        pa = pd.to_numeric(df[CSV_PRESSURE_COLUMN], errors="coerce").to_numpy(dtype=float)
+        bad = np.isnan(pa) & df[CSV_PRESSURE_COLUMN].notna().to_numpy()
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(
+                f"{p}: row {k + 1} column {CSV_PRESSURE_COLUMN!r}: not a number: {df[CSV_PRESSURE_COLUMN].iloc[k]!r}"
+            )
+        keep = ~np.isnan(pa)  # blank: no pressure sample at this row
+        baro_t, baro_pa = a[keep, 0], pa[keep]
+        sources["baro"] = "CSV"
+    return LogRecording(p, "csv", imu, mag_t, mag, None, None, sources, baro_t=baro_t, baro_pa=baro_pa)
 
 
 # ------------------------------------------------------------------------------------------------ replay
@@ -386,6 +439,7 @@ class ReplayResult:
     init_source: str
     map_covers_start: bool
     error_m: FloatArray | None = None
+    baro: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
         """Counts, fix statistics and (with GNSS) horizontal error figures, for the stdout summary and JSON."""
@@ -404,6 +458,8 @@ class ReplayResult:
             "init": self.init_source,
             "map_covers_start": self.map_covers_start,
         }
+        if self.baro is not None:
+            out["baro"] = dict(self.baro)
         if self.error_m is not None and np.isfinite(self.error_m).any():
             e = self.error_m[np.isfinite(self.error_m)]
             out["gnss_error_m"] = {
@@ -502,6 +558,7 @@ def replay(
     output_dt: float = 0.2,
     duration_s: float | None = None,
     pipeline_factory: Callable[[NavState, float], Any] | None = None,
+    baro: bool = True,
     **pipeline_options: Any,
 ) -> ReplayResult:
     """Run the online pipeline over ``rec`` as the bridge would (module docstring).
@@ -512,7 +569,10 @@ def replay(
     position only for the IGRF, which changes by a few nT per km); the estimate is recorded every ``output_dt`` s
     (at the first IMU sample at or after each output time); ``duration_s`` stops the replay that many seconds after
     the start. ``pipeline_factory(nav0, sigma)`` builds the pipeline (default
-    :func:`make_online_pipeline` with ``fmap`` and ``pipeline_options``)."""
+    :func:`make_online_pipeline` with ``fmap`` and ``pipeline_options``). ``baro``: when the log holds pressure,
+    the INS height follows the barometric height as in the bridge (:class:`.baro.BaroHeight`, referenced to the
+    pressure at the start; each IMU step ends at the baro height at its time); the result's ``baro`` holds its
+    counters."""
     if not (reading_interval_s >= 0 and output_dt > 0):
         raise ConfigError(
             f"reading interval must be >= 0 and output interval > 0 s, got {reading_interval_s}, {output_dt}"
@@ -560,10 +620,32 @@ def replay(
             last_reading = tm
             n_readings += 1
 
+    baro_t, baro_pa = rec.baro_t, rec.baro_pa
+    bh: BaroHeight | None = None
+    jb = 0
+    baro_applied = False
+    if baro and len(baro_t):
+        bh = BaroHeight()
+        jb = int(np.searchsorted(baro_t, t_all[k0], side="right"))
+        for i in range(max(0, jb - bh.median_n), jb):  # the samples just before the start set the reference
+            bh.push(float(baro_t[i]), float(baro_pa[i]))
+        bh.set_reference(nav0.h, float(t_all[k0]))
+
     record()
     t_next = t_all[k0] + output_dt
     for k in range(k0 + 1, len(t_all)):
         t = float(t_all[k])
+        if bh is not None:
+            while jb < len(baro_t) and baro_t[jb] <= t + _TOL:
+                bh.push(float(baro_t[jb]), float(baro_pa[jb]))
+                jb += 1
+            h_baro = bh.height(t)
+            if h_baro is not None:
+                if hold_height(pipe, h_baro):
+                    baro_applied = True
+                elif not baro_applied:
+                    bh = None  # this pipeline holds no altitude (graph fusion, altitude_hold=False)
+                    log.warning("barometer in the log not used: the pipeline holds no altitude")
         while j < len(mag_t) and mag_t[j] < t - _TOL:  # strictly inside the sample: queued, applied at its time
             reading(j)
             j += 1
@@ -600,7 +682,17 @@ def replay(
         init_source,
         covers,
         err,
+        _baro_summary(rec, baro_applied, bh),
     )
+
+
+def _baro_summary(rec: LogRecording, applied: bool, bh: BaroHeight | None) -> dict[str, Any] | None:
+    if not len(rec.baro_t):
+        return None
+    out: dict[str, Any] = {"source": rec.sources.get("baro", ""), "used": applied}
+    if bh is not None:
+        out.update(bh.health.as_dict())
+    return out
 
 
 def write_trajectory(path: str | Path, result: ReplayResult) -> None:
