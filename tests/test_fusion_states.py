@@ -397,3 +397,25 @@ def test_scenario_names_a_bad_fusion_option(tmp_path) -> None:
     p.write_text(good)
     sc = load_scenario(p)
     assert sc.estimators[0].fusion["scale_factors"] is True
+
+
+def test_rts_smoother_with_scale_factor_states() -> None:
+    """``keep_history`` and :meth:`smooth` with the 21-state layout: the smoothed track beats the filter's and its
+    covariances carry the scale-factor block."""
+    traj, _ = strong_flight()
+    init, imu, fixes, _ = sf_inputs()
+    f = make_fuser("ukf", init, ImuNoise.from_grade(sf_grade()), keep_history=True, scale_factors=True)
+    i = 0
+    for fix, h in fixes:
+        j = int(np.searchsorted(imu.t, fix.t + 1e-9, side="right"))
+        f.propagate(imu.slice(i, j))
+        i = j
+        f.correct(fix, height_m=h, height_sigma_m=H_SIGMA)
+    hist = f._history
+    filt = np.array([nav_error(h[5], traj.at(int(round(h[0] * RATE_HZ))))[:2] for h in hist])
+    sm, Ps = f.smooth()
+    assert Ps.shape == (len(hist), 21, 21)
+    smo = np.array([nav_error(sm.at(k), traj.at(int(round(sm.t[k] * RATE_HZ))))[:2] for k in range(len(sm))])
+    assert horizontal_rms(smo) < 0.6 * horizontal_rms(filt), (horizontal_rms(smo), horizontal_rms(filt))
+    # measured 0.40 m vs 1.30 m (at every covariance step, between fixes too)
+    assert np.all(Ps[:, 15:21, 15:21].diagonal(axis1=1, axis2=2) <= SF_SIGMA**2 * (1 + 1e-9))
