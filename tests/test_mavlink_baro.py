@@ -282,3 +282,71 @@ def test_bridge_height_follows_a_climb_with_a_barometer(climb_flight, pressure_r
         assert err[-1] < -95.0
     link.close()
     ap.close()
+
+
+class _FakeLink:
+    """A link that hands the bridge queued messages and records what it sends (method name, keyword arguments)."""
+
+    def __init__(self) -> None:
+        self.inbox: list = []
+        self.sent: list[tuple[str, tuple, dict]] = []
+
+    def recv(self, timeout: float = 0.0):  # noqa: ARG002
+        out, self.inbox = self.inbox, []
+        return out
+
+    def __getattr__(self, name: str):
+        if not name.startswith("send_") and name not in ("request_message_interval", "reconnect", "close"):
+            raise AttributeError(name)
+        return lambda *a, **kw: self.sent.append((name, a, kw))
+
+
+def test_bridge_sends_the_baro_height_and_climb_rate_and_says_when_the_baro_is_lost():
+    """No network: a vehicle at rest on the ground whose barometer says it climbs at 2 m/s (100 Hz IMU, 20 Hz
+    pressure, exact ISA values). GPS_INPUT carries the baro height and ``vd = -2``; a 3 s pressure gap sends one
+    "baro lost" STATUSTEXT and holds the height, and the rate returns to 0."""
+    from magnav_ins.core.frames import WGS84_OMEGA_E
+    from magnav_ins.ins.earth import gravity_n
+    from magnav_ins.mavlink.bridge import Bridge, BridgeConfig
+    from magnav_ins.mavlink.link import ImuMessage, PressureMessage
+    from magnav_ins.mavlink.replay import make_online_pipeline
+
+    lat, lon = START
+    now = [0.0]
+    link = _FakeLink()
+    config = BridgeConfig(output="gps_input", output_rate_hz=5.0, init=(lat, lon, 250.0, 0.3))
+    bridge = Bridge(
+        link,  # type: ignore[arg-type]
+        config,
+        lambda nav0, s: make_online_pipeline(nav0, s, None, matcher="none", fusion="ukf"),
+        clock=lambda: now[0],
+        wall_clock=lambda: 1.7e9 + now[0],
+    )
+    accel = np.array([0.0, 0.0, -gravity_n(lat, 250.0)[2]])
+    gyro = np.array([WGS84_OMEGA_E * math.cos(lat), 0.0, -WGS84_OMEGA_E * math.sin(lat)])
+    climb_h = []  # (t, true baro height relative to the start)
+    bridge.poll()  # nothing received yet: the bridge asks for its streams
+    for k in range(1, 2001):  # 20 s
+        t = 0.01 * k
+        now[0] = t
+        link.inbox.append(ImuMessage(t, gyro, accel, None, "HIGHRES_IMU", 1, 1))
+        if k % 5 == 0 and not (12.0 <= t < 15.0):
+            h_rel = 2.0 * max(t - 5.0, 0.0) if t < 12.0 else 14.0 + 2.0 * (t - 15.0)
+            link.inbox.append(PressureMessage(t, float(isa.isa_pressure_pa(100.0 + h_rel)), 15.0, 1, 1))
+            climb_h.append((t, h_rel))
+        bridge.poll()
+    gps = [(kw["t_unix"] - 1.7e9, kw["h_msl"], kw["v_n"][2]) for name, _, kw in link.sent if name == "send_gps_input"]
+    gps = np.array([g for g in gps if g[0] > 1.0])
+    statustext = [a[1] for name, a, _ in link.sent if name == "send_statustext"]
+    assert any(c[1][0] == "SCALED_PRESSURE" for c in link.sent if c[0] == "request_message_interval")
+    climbing = (gps[:, 0] > 7.0) & (gps[:, 0] < 12.0)
+    # the output is sent at the poll that follows the IMU sample: the INS (and its held height) is one IMU step behind
+    np.testing.assert_allclose(gps[climbing, 1], 250.0 + 2.0 * (gps[climbing, 0] - 5.0), atol=0.05)
+    np.testing.assert_allclose(gps[climbing, 2], -2.0, atol=1e-3)
+    held = (gps[:, 0] > 14.1) & (gps[:, 0] < 15.0)
+    np.testing.assert_allclose(gps[held, 1], 250.0 + 14.0, atol=0.3)  # the last baro height (at 11.95 s)
+    np.testing.assert_allclose(gps[held, 2], 0.0)
+    assert statustext.count("magnav: baro lost, height held") == 1 and "magnav: baro back" in statustext
+    late = gps[:, 0] > 17.0
+    np.testing.assert_allclose(gps[late, 1], 250.0 + 14.0 + 2.0 * (gps[late, 0] - 15.0), atol=0.05)
+    assert bridge.health.pressures == len(climb_h) and bridge.health.baro_stale_events == 1
