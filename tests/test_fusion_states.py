@@ -419,3 +419,27 @@ def test_rts_smoother_with_scale_factor_states() -> None:
     assert horizontal_rms(smo) < 0.6 * horizontal_rms(filt), (horizontal_rms(smo), horizontal_rms(filt))
     # measured 0.40 m vs 1.30 m (at every covariance step, between fixes too)
     assert np.all(Ps[:, 15:21, 15:21].diagonal(axis1=1, axis2=2) <= SF_SIGMA**2 * (1 + 1e-9))
+
+
+# --- the altitude hold a height aid moves ---------------------------------------------------------------------
+def test_set_altitude_hold_moves_the_clamped_height() -> None:
+    """After ``set_altitude_hold(h)`` the next IMU step ends at ``h`` with zero down velocity; a fuser with a free
+    vertical channel refuses it with a message (the barometric aid then leaves it alone)."""
+    from magnav_ins.core.errors import InputError
+
+    init, imu, _, _ = sf_inputs()
+    noise = ImuNoise.from_grade(sf_grade())
+    f = make_fuser("ukf", init, noise, altitude_hold=float(init.nav.h))
+    assert f.holds_altitude
+    f.propagate(imu.slice(0, 51))
+    assert abs(f.estimate().nav.h - init.nav.h) < 1e-9
+    f.set_altitude_hold(float(init.nav.h) + 37.5)
+    f.propagate(imu.slice(50, 101))
+    nav = f.estimate().nav
+    assert abs(nav.h - (init.nav.h + 37.5)) < 1e-9 and nav.v_n[2] == 0.0
+    free = make_fuser("ukf", init, noise, altitude_hold=None)
+    assert not free.holds_altitude
+    with pytest.raises(InputError, match="without altitude_hold"):
+        free.set_altitude_hold(100.0)
+    with pytest.raises(InputError, match="finite"):
+        f.set_altitude_hold(float("nan"))

@@ -457,6 +457,10 @@ class StrapdownStepper:
                 f"finite, got {np.asarray(a).tolist()}, {np.asarray(b).tolist()}"
             )
 
+    def set_altitude_hold(self, h_m: float | None) -> None:
+        """Clamp the vertical channel to ``h_m`` (m above the ellipsoid) from the next step on; None frees it."""
+        self._hold = _hold(h_m)
+
     def step_rate(self, t: float, gyro_b: FloatArray, accel_b: FloatArray) -> None:
         """Advance to ``t`` (s) with mean rates ``gyro_b`` (rad/s) and specific force ``accel_b`` (m/s^2), FRD."""
         self._step(t, gyro_b, accel_b, True)

@@ -212,22 +212,10 @@ def hold_height(pipeline: object, h_m: float) -> bool:
     """Move the altitude hold of ``pipeline``'s INS to ``h_m`` (m): the next IMU step ends at that height with zero
     down velocity. Returns False when the pipeline holds no altitude (fusion ``graph``, ``altitude_hold=False``).
 
-    Uses ``pipeline.set_held_height(h)`` if the pipeline has one, else the fuser's ``set_altitude_hold(h)``, else the
-    clamp of the fusers of :mod:`magnav_ins.aiding.fusion.common` (``_altitude_hold`` and its strapdown stepper's
-    ``_hold``): those fusers have no public setter yet.
+    Uses the fuser's :meth:`~magnav_ins.aiding.fusion.common.InertialCore.set_altitude_hold`.
     """
-    own = getattr(pipeline, "set_held_height", None)
-    if callable(own):
-        own(h_m)
-        return True
     fuser = getattr(pipeline, "fuser", None)
-    setter = getattr(fuser, "set_altitude_hold", None)
-    if callable(setter):
-        setter(h_m)
-        return True
-    stepper = getattr(fuser, "_stepper", None)
-    if getattr(fuser, "_altitude_hold", None) is None or stepper is None or not hasattr(stepper, "_hold"):
+    if not getattr(fuser, "holds_altitude", False):
         return False
-    fuser._altitude_hold = float(h_m)  # type: ignore[union-attr]
-    stepper._hold = float(h_m)
+    fuser.set_altitude_hold(float(h_m))  # type: ignore[union-attr]
     return True

@@ -655,6 +655,22 @@ class InertialCore:
                 self._raw.append((t, w, f))
             self._step(t, w, f)
 
+    @property
+    def holds_altitude(self) -> bool:
+        """True when the vertical channel is clamped (``altitude_hold`` given at construction)."""
+        return self._altitude_hold is not None
+
+    def set_altitude_hold(self, h_m: float) -> None:
+        """Move the vertical-channel clamp to ``h_m`` (m above the ellipsoid) from the next IMU sample on: a height
+        aid such as :mod:`magnav_ins.mavlink.baro` moves it as the vehicle climbs. Only for a fuser built with
+        ``altitude_hold``; a late fix that re-runs the INS from a checkpoint uses the latest height."""
+        if self._altitude_hold is None:
+            raise InputError("set_altitude_hold: this fuser was built without altitude_hold (free vertical channel)")
+        if not np.isfinite(h_m):
+            raise InputError(f"set_altitude_hold: height must be finite, got {h_m!r}")
+        self._altitude_hold = float(h_m)
+        self._stepper.set_altitude_hold(float(h_m))
+
     def estimate(self) -> NavEstimate:
         """The current INS state and its error covariance (propagated up to now) in ``self.layout`` (LAYOUT_15
         unless optional states were asked for)."""
