@@ -156,3 +156,71 @@ def test_examples_validate(path):
         pytest.skip("needs ../shared/data")
     sc = load_scenario(path)
     assert sc.estimators or "drift" in path.name
+
+
+# ---------------------------------------------------------------------------------- per-estimator IMU grade (issue 8)
+DRIFT = """\
+name = "grades"
+
+[trajectory]
+kind = "great_circle"
+start = [-35.0, 149.0]
+end = [-35.0, 152.0]
+altitude_m = 1000.0
+speed_mps = 100.0
+
+[imu]
+grade = "tactical"
+
+[[estimator]]
+name = "nav"
+imu_grade = "navigation"
+fusion = { kind = "free_inertial" }
+"""
+
+
+def test_free_inertial_estimator_of_another_grade_needs_no_matcher_map_or_sensor(tmp_path):
+    sc = load_scenario(_write(tmp_path, DRIFT))
+    (est,) = sc.estimators
+    assert est.imu_grade == "navigation" and est.matcher is None and est.matcher_kind is None
+    assert est.fusion_kind == "free_inertial" and sc.imu.grade == "tactical"
+    assert sc.map is None and sc.sensor is None
+    good = load_scenario(_write(tmp_path, GOOD))
+    assert all(e.imu_grade is None for e in good.estimators)  # default: the [imu] grade
+
+
+@pytest.mark.parametrize(
+    ("text", "old", "new", "key", "needle", "match"),
+    [
+        (DRIFT, 'imu_grade = "navigation"', 'imu_grade = "nav-grade"', "estimator[0].imu_grade", "nav-grade", "one of"),
+        (DRIFT, 'imu_grade = "navigation"', "imu_grade = 2", "estimator[0].imu_grade", "imu_grade = 2", "string"),
+        (DRIFT, 'kind = "free_inertial"', 'kind = "ukf"', "estimator[0].matcher", "[[estimator]]", "missing"),
+        (DRIFT, 'imu_grade = "navigation"', "window = 3", "estimator[0].window", "window = 3", "needs a matcher"),
+        (
+            GOOD,
+            'name = "pmht"',
+            'name = "pmht"\nimu_grade = "quantumm"',
+            "estimator[1].imu_grade",
+            "quantumm",
+            "one of",
+        ),
+    ],
+)
+def test_imu_grade_and_optional_matcher_errors_name_key_and_line(tmp_path, text, old, new, key, needle, match):
+    text = text.replace(old, new, 1)
+    with pytest.raises(ConfigError) as ei:
+        load_scenario(_write(tmp_path, text))
+    msg = str(ei.value)
+    assert key in msg and match in msg, msg
+    assert f"line {_line_of(text, needle)}" in msg, msg
+
+
+def test_matcher_is_still_required_by_an_aided_fuser_with_a_map(tmp_path):
+    text = GOOD.replace('matcher = { kind = "ml", ratio_threshold = 2.5 }\n', "")
+    with pytest.raises(ConfigError, match=r"missing key 'estimator\[0\]\.matcher'"):
+        load_scenario(_write(tmp_path, text))
+    # a matcher-less free-inertial estimator beside aided ones is fine
+    sc = load_scenario(
+        _write(tmp_path, text.replace('fusion = { kind = "ukf" }', 'fusion = { kind = "free_inertial" }', 1))
+    )
+    assert sc.estimators[0].matcher is None and sc.estimators[1].matcher_kind == "pmht"

@@ -3,13 +3,16 @@
 Per run (seed sequence ``ss``, see :mod:`.runner`), three independent generators are derived without mutating
 ``ss``: ``child(ss, 0)`` draws the IMU errors (``ins.imu_models.corrupt``), ``child(ss, 1)`` the initial INS errors,
 ``child(ss, 2)`` the sensor noise; ``child(ss, 10 + j)`` is handed to estimator ``j`` (for randomised matchers).
+An estimator with its own ``imu_grade`` other than ``[imu] grade`` flies an IMU corrupted with that grade's errors
+drawn from :func:`grade_seed` (``child(child(ss, 0), crc32(grade))``): derived from the run's seed and the grade's
+name only, so estimators of one grade share one draw and results do not depend on the estimator order or ``--jobs``.
 The truth trajectory, the ideal IMU and the map are deterministic and shared by all runs; they are built once per
 process and memoised (keyed by the scenario) so parallel workers do not rebuild them for every run.
 
 Every estimator and the free-inertial baseline (``aiding.fusion`` kind ``free_inertial``: the same INS with its
-covariance, no fixes) run through :class:`magnav_ins.pipeline.Pipeline` on the same corrupted IMU, perturbed
-initial state and readings, with the vertical channel held at the initial height (``altitude_hold``; a barometric
-aid - an unaided vertical channel diverges within minutes).
+covariance, no fixes) run through :class:`magnav_ins.pipeline.Pipeline` on the same corrupted IMU (or their own
+grade's), perturbed initial state and readings, with the vertical channel held at the initial height
+(``altitude_hold``; a barometric aid - an unaided vertical channel diverges within minutes).
 """
 
 from __future__ import annotations
@@ -33,6 +36,16 @@ _SHARED_MAX = 2
 def child(ss: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
     """The ``k``-th child of ``ss`` without mutating it (``ss.spawn`` would advance its counter)."""
     return np.random.SeedSequence(ss.entropy, spawn_key=(*ss.spawn_key, k), pool_size=ss.pool_size)
+
+
+def grade_seed(ss: np.random.SeedSequence, grade: str, baseline: str) -> np.random.SeedSequence:
+    """Seed of the IMU-error draw of ``grade`` (an ``IMU_GRADES`` name) in the run seeded by ``ss``: the baseline's
+    ``child(ss, 0)`` for the ``[imu] grade`` ``baseline``, else ``child(child(ss, 0), crc32(grade))`` - a function of
+    the run seed and the grade's name only (CRC-32 is stable across processes, unlike ``hash``)."""
+    import zlib
+
+    c = child(ss, 0)
+    return c if grade == baseline else child(c, zlib.crc32(grade.encode("utf-8")))
 
 
 # ------------------------------------------------------------------------------------------------ truth & map
@@ -302,9 +315,12 @@ class PipelineModel:
         sc = self.scenario
         sh = self.shared()
         truth: NavTrajectory = sh["truth"]
-        imu, _ = imu_models.corrupt(
-            sh["imu"], imu_models.get_grade(sc.imu.grade), np.random.default_rng(child(seed, 0))
-        )
+        imus: dict[str, Any] = {}
+        for g in (sc.imu.grade, *(e.imu_grade for e in sc.estimators if e.imu_grade)):
+            if g not in imus:
+                rng_g = np.random.default_rng(grade_seed(seed, g, sc.imu.grade))
+                imus[g], _ = imu_models.corrupt(sh["imu"], imu_models.get_grade(g), rng_g)
+        imu = imus[sc.imu.grade]
         init = perturbed_init(sc, truth, np.random.default_rng(child(seed, 1)))
         readings = None
         if sc.sensor is not None:
@@ -317,21 +333,31 @@ class PipelineModel:
         )
         t_out = truth.t[sel]
         outs = [
-            run_estimator(sc, j, t_out, imu, init, readings, sh["map"], np.random.default_rng(child(seed, 10 + j)))
-            for j in range(len(sc.estimators))
+            run_estimator(
+                sc,
+                j,
+                t_out,
+                imus[est.imu_grade or sc.imu.grade],
+                init,
+                readings,
+                sh["map"],
+                np.random.default_rng(child(seed, 10 + j)),
+            )
+            for j, est in enumerate(sc.estimators)
         ]
         outs.append(run_estimator(sc, None, t_out, imu, init, None, None, None))
         return RunOutput(t_out, truth.lat[sel], truth.lon[sel], tuple(outs))
 
 
-def initial_estimate(sc: Scenario, init: NavState) -> NavEstimate:
-    """The fusers' prior: ``init`` with the ``[init]`` sigmas and the grade's bias sigmas (LAYOUT_15)."""
+def initial_estimate(sc: Scenario, init: NavState, grade: str | None = None) -> NavEstimate:
+    """The fusers' prior: ``init`` with the ``[init]`` sigmas and the bias sigmas (LAYOUT_15) of IMU ``grade``
+    (default ``[imu] grade``)."""
     from ..ins.error_model import initial_covariance
     from ..ins.imu_models import get_grade
 
     ic = sc.init
     P0 = initial_covariance(
-        get_grade(sc.imu.grade),
+        get_grade(grade or sc.imu.grade),
         position_sigma_m=max(ic.position_sigma_m, 1e-3),
         velocity_sigma_mps=max(ic.velocity_sigma_mps, 1e-4),
         attitude_sigma_rad=np.maximum(np.asarray(ic.attitude_sigma_deg) * DEG_TO_RAD, 1e-7),
@@ -358,22 +384,38 @@ def run_estimator(
     rng: np.random.Generator | None,
 ) -> EstimatorOutput:
     """Run estimator ``j`` of the scenario (``None``: the free-inertial baseline) through
-    :class:`magnav_ins.pipeline.Pipeline` and resample its track and covariance onto ``t_out``."""
+    :class:`magnav_ins.pipeline.Pipeline` and resample its track and covariance onto ``t_out``. ``imu`` is the
+    corrupted IMU of the estimator's grade (its ``imu_grade``, else ``[imu] grade``), whose noise the fuser uses.
+    An estimator without a matcher (free inertial) gets no readings and, unless its fusion sets ``cov_step_s``,
+    the baseline's covariance step, so an estimator of the baseline's grade reproduces the baseline exactly."""
     from ..aiding.fusion import ImuNoise, make_fuser
     from ..aiding.matchers.registry import RECURSIVE_KINDS, build_matcher
     from ..ins.imu_models import get_grade
     from ..pipeline import Pipeline
 
     hold = float(init.h)
-    noise = ImuNoise.from_grade(get_grade(sc.imu.grade))
-    prior = initial_estimate(sc, init)
+    grade = sc.imu.grade if j is None else (sc.estimators[j].imu_grade or sc.imu.grade)
+    noise = ImuNoise.from_grade(get_grade(grade))
+    prior = initial_estimate(sc, init, grade)
+    # covariance stepped at the output spacing where only the free INS runs: its covariance is only reported there
+    dt_out = float(np.min(np.diff(t_out))) if len(t_out) > 1 else 1.0
     if j is None:
         name, mkind, fkind = FREE_INERTIAL, None, FREE_INERTIAL
-        # covariance stepped at the output spacing: the baseline's covariance is only reported there
-        dt_out = float(np.min(np.diff(t_out))) if len(t_out) > 1 else 1.0
         fuser = make_fuser(FREE_INERTIAL, prior, noise, altitude_hold=hold, cov_step_s=max(1.0, dt_out))
         pipe = Pipeline(fuser)
         where = sc.where("imu")
+    elif sc.estimators[j].matcher is None:
+        est = sc.estimators[j]
+        name, mkind, fkind = est.name, None, est.fusion_kind
+        where = sc.where(f"estimator[{j}]")
+        fopts = {k: v for k, v in est.fusion.items() if k != "kind"}
+        fopts.setdefault("altitude_hold", hold)
+        fopts.setdefault("cov_step_s", max(1.0, dt_out))
+        try:
+            pipe = Pipeline(make_fuser(fkind, prior, noise, **fopts))
+        except (MagnavError, TypeError) as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        readings = None
     else:
         est = sc.estimators[j]
         name, mkind, fkind = est.name, est.matcher_kind, est.fusion_kind

@@ -174,18 +174,25 @@ class EstimatorConfig:
     ``match_every`` (readings between match attempts); both default to the matcher's ``batch`` when it has one
     (Wang's non-overlapping batches), else 1. ``smooth``: 0 reports the filter's causal (online) track; N >= 1
     reports the UKF's Rauch-Tung-Striebel smoothed track instead (N passes: one closed-loop pass, then N - 1
-    relinearised ones; :meth:`magnav_ins.aiding.fusion.ukf.UkfFuser.smooth`), for offline studies."""
+    relinearised ones; :meth:`magnav_ins.aiding.fusion.ukf.UkfFuser.smooth`), for offline studies.
+
+    ``matcher`` is None for a free-inertial estimator (``fusion.kind = "free_inertial"``) without fixes: with
+    ``imu_grade`` it is the free-inertial drift of another IMU grade beside the baseline (Storms Fig. 2.1).
+    ``imu_grade`` (``IMU_GRADES``) gives this estimator its own IMU: the same truth and initial errors, the IMU
+    corrupted with that grade's error model and the fuser using that grade's noise; None means ``[imu] grade``
+    (the baseline's IMU, the same draw)."""
 
     name: str
-    matcher: dict[str, Any] = field(compare=False)
+    matcher: dict[str, Any] | None = field(compare=False)
     fusion: dict[str, Any] = field(compare=False)
     window: int | None = None
     match_every: int | None = None
     smooth: int = 0
+    imu_grade: str | None = None
 
     @property
-    def matcher_kind(self) -> str:
-        return str(self.matcher["kind"])
+    def matcher_kind(self) -> str | None:
+        return None if self.matcher is None else str(self.matcher["kind"])
 
     @property
     def fusion_kind(self) -> str:
@@ -475,8 +482,13 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
         p = f"estimator[{i}]"
         if not isinstance(e, dict):
             raise ctx.error(p, "expected an [[estimator]] table")
+        free = isinstance(e.get("fusion"), dict) and e["fusion"].get("kind") == FREE_INERTIAL
         _check_keys(
-            ctx, p, e, {"name", "matcher", "fusion", "window", "match_every", "smooth"}, {"name", "matcher", "fusion"}
+            ctx,
+            p,
+            e,
+            {"name", "matcher", "fusion", "window", "match_every", "smooth", "imu_grade"},
+            {"name", "fusion"} if free else {"name", "matcher", "fusion"},
         )
         name = _str(ctx, f"{p}.name", e["name"])
         if not name or name == FREE_INERTIAL:
@@ -486,14 +498,21 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
         seen.add(name)
         win = _int(ctx, f"{p}.window", e["window"], minimum=1) if "window" in e else None
         every = _int(ctx, f"{p}.match_every", e["match_every"], minimum=1) if "match_every" in e else None
-        matcher = _spec(ctx, f"{p}.matcher", e["matcher"])
+        matcher = None
+        if "matcher" in e:
+            matcher = _spec(ctx, f"{p}.matcher", e["matcher"])
+            _check_matcher(ctx, f"{p}.matcher", matcher)
+        else:
+            for k in ("window", "match_every"):
+                if k in e:
+                    raise ctx.error(f"{p}.{k}", f"'{k}' needs a matcher; estimator {name!r} has none")
         fusion = _spec(ctx, f"{p}.fusion", e["fusion"])
-        _check_matcher(ctx, f"{p}.matcher", matcher)
         _check_fusion(ctx, f"{p}.fusion", fusion)
         smooth = _int(ctx, f"{p}.smooth", e["smooth"], minimum=0) if "smooth" in e else 0
         if smooth and fusion["kind"] != "ukf":
             raise ctx.error(f"{p}.smooth", f"smoothing is offered by the ukf fuser only, not {fusion['kind']!r}")
-        out.append(EstimatorConfig(name, matcher, fusion, win, every, smooth))
+        grade = _str(ctx, f"{p}.imu_grade", e["imu_grade"], IMU_GRADES) if "imu_grade" in e else None
+        out.append(EstimatorConfig(name, matcher, fusion, win, every, smooth, grade))
     return tuple(out)
 
 
@@ -506,8 +525,10 @@ def scenario_from_dict(
     """Validate a parsed scenario (the dict tomllib returns). Relative paths resolve against ``source``'s folder."""
     ctx = _Ctx(source, lines or {})
     base = source.parent if source is not None else Path.cwd()
-    # [map] and [sensor] may be left out only by a free-inertial study (no [[estimator]])
-    need = {"name", "trajectory", "imu"} | ({"map", "sensor"} if data.get("estimator") else set())
+    # [map] and [sensor] may be left out only by a free-inertial study (no [[estimator]] with a matcher)
+    ests_raw = data.get("estimator")
+    matched = isinstance(ests_raw, list) and any(not isinstance(e, dict) or "matcher" in e for e in ests_raw)
+    need = {"name", "trajectory", "imu"} | ({"map", "sensor"} if matched else set())
     _check_keys(ctx, "", data, _TOP_KEYS, need)
     name = _str(ctx, "name", data["name"])
     description = _str(ctx, "description", data.get("description", ""))
