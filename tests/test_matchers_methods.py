@@ -270,6 +270,45 @@ def test_pmht_flags_divergence_when_truth_outside_gate():
     assert not fix.available and "diverged" in fix.reason, fix.reason
 
 
+def test_pmht_ambiguity_term_covers_a_wrong_mode_on_a_periodic_map():
+    """A map periodic along north (period 300 m, constant along east): offsets of whole periods fit the readings
+    equally well, so the batch likelihood has a mode every 300 m inside the +-600 m gate. With the INS 220 m north of
+    the truth the EM climbs the mode one period away; the local covariance (EM, Cramer-Rao bound) claims a few metres,
+    the ambiguity term must cover the 300 m (north NEES below the 99 % chi-square(1) bound 6.6)."""
+    rng = np.random.default_rng(33)
+    base = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    ny, nx = np.asarray(base.values).shape[:2]
+    fmap = base.with_values(20.0 * np.sin(2 * np.pi * 10.0 * np.arange(ny) / 300.0)[:, None] * np.ones((1, nx)))
+    T, dt, sig, v = 30, 10.0, 0.5, np.array([12.0, 0.0])
+    truth = np.array([300.0, 2000.0]) + v * dt * np.arange(T)[:, None]
+    z = fmap.value(*latlon(fmap, truth[:, 0], truth[:, 1])) + rng.normal(0, sig, T)
+    w = make_window(fmap, dt * np.arange(T), truth, z, sig, KIND_G, np.array([220.0, 50.0]), np.eye(2) * 200.0**2, v)
+    nees_n = {}
+    for amb in (True, False):
+        fix = PMHTMatcher(ambiguity_floor=amb).match(w, fmap)
+        assert fix.available, fix.reason
+        d = local(fmap, fix.lat, fix.lon) - truth[-1]
+        assert 250.0 < d[0] < 350.0  # the wrong mode, one period north
+        nees_n[amb] = d[0] ** 2 / fix.cov_ne[0, 0]
+        # east is unobservable (the map is constant along east): a partial fix, east variance capped at (10 h)^2
+        assert np.isclose(fix.cov_ne[1, 1], (10 * 3 * 200.0) ** 2, rtol=1e-3)
+    assert nees_n[True] < 6.6 and nees_n[False] > 100.0, nees_n
+
+
+def test_pmht_ambiguity_term_unused_where_the_likelihood_is_unambiguous():
+    """On the rough synthetic gravity map the batch likelihood is concentrated about the EM's mode (more than 90 %
+    within 1.5 offset cells): the fix covariance is the local one, bit for bit."""
+    rng = np.random.default_rng(31)
+    fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    w, _ = _pmht_window(fmap, rng)
+    m = PMHTMatcher()
+    res = m.run(w, fmap)
+    assert m._ambiguity_cov(res, len(res.t) - 1)[1] > m.ambiguity_mass
+    a, b = m.match(w, fmap), PMHTMatcher(ambiguity_floor=False).match(w, fmap)
+    assert a.available and b.available
+    assert np.array_equal(a.cov_ne, b.cov_ne)
+
+
 # ---------------------------------------------------------------------------------------------- particle filters
 def test_gauss_markov_acceleration_is_stationary_with_sigma():
     rng = np.random.default_rng(41)

@@ -21,10 +21,24 @@ For a batch of ``T`` scans (field readings ``s_t`` with INS-indicated positions 
    feature variability (eq. 14) ``C``: multiplied by ``max(1, variability_ref / (C / s^2))``; aiding stops (no fix,
    "flat map") where ``sqrt(C) < min_variability * s``.
 
-Covariance floor (``crlb_floor``, ours): the fix covariance is scaled up, if needed, until it is no smaller than
-the Cramer-Rao bound ``J^-1`` of a common position offset over the batch, ``J = sum_t G_t' G_t / s^2`` with the map
-gradient ``G_t`` along the estimated track: on smooth maps the EM collapses onto a few candidates and its own
-covariance is far too small (fix NEES 4-80 on the EIGEN-6C4 10' gravity grid without it).
+Fix covariance (ours): the EM's smoothed covariance ``P_k|T`` describes the mode the EM climbed only and is far
+too small on smooth maps (fix NEES 10-20 at 1 mGal, 100-1000 with the tactical IMU on the EIGEN-6C4 10' gravity
+grid). Three terms, combined by the Loewner maximum (in the basis that whitens one, the larger eigenvalue of each
+pair: no double counting), never by a sum:
+
+* ``variance_factor``: ``P`` times ``max(1, mean NIS / 2)``;
+* ``crlb_floor``: the Cramer-Rao bound ``J^-1`` of a common position offset over the batch,
+  ``J = sum_t G_t' G_t / s^2`` with the map gradient ``G_t`` along the estimated track;
+* ``ambiguity_floor``: the spread of the batch likelihood of a rigid offset of the INS track over the whole gate
+  (``ambiguity_grid`` offsets a side, :meth:`PMHTMatcher._ambiguity`), its second moment about the fix, used only
+  where that likelihood is ambiguous: less than ``ambiguity_mass`` (0.9) of it within 1.5 grid cells of the fix.
+  On the synthetic maps of the contract tests the likelihood is nearly always unambiguous and the term is rarely
+  used (fix NEES 1.98 over the 40 trials); on the 10' gravity grid it always is (0.03-0.1 of the mass near the
+  fix), and it is what covers a wrong mode or a long along-track ridge.
+
+With ``partial_fixes`` a fix is refused ("flat map") only when its sigma exceeds the gate half-width in every
+direction (a fix along a straight line over a smooth map fixes the cross-track position only); variances are capped
+at ``(10 max h)^2``.
 
 Departure from the paper, stated: by default (``use_prior=False``) the position prior of the forward filter is
 diffuse (the INS prior only centres the gates and starts the EM), so the fix is independent of the INS and can be
@@ -283,6 +297,23 @@ def _em(
     return X, Ps, zbar, Rbar, it_used
 
 
+def _loewner_max(A: FloatArray, B: FloatArray, big: float, information: bool = False) -> FloatArray:
+    """A covariance no smaller than ``A`` and ``B`` (2, 2) in the Loewner order: in the basis that whitens ``A``,
+    each eigenvalue of ``B`` raised to at least 1 (``A`` where it is larger, ``B`` where that is). ``information``:
+    ``B`` is an information matrix (its inverse the covariance; it may be singular). Variances capped at ``big``."""
+    ev, V = np.linalg.eigh(0.5 * (A + A.T))
+    L = V * np.sqrt(np.maximum(ev, 1e-12 * max(float(ev[-1]), 1e-300)))  # A = L L'
+    if information:
+        mu, W = np.linalg.eigh(L.T @ B @ L)
+        lam = 1.0 / np.maximum(np.minimum(mu, 1.0), 1e-300)
+    else:
+        Li = np.linalg.inv(L)
+        lam, W = np.linalg.eigh(Li @ B @ Li.T)
+        lam = np.maximum(lam, 1.0)
+    out = L @ ((W * np.minimum(lam, big / max(float(ev[0]), 1e-300))) @ W.T) @ L.T
+    return 0.5 * (out + out.T)
+
+
 # ---------------------------------------------------------------------------------------------- matcher
 @dataclass
 class PMHTResult:
@@ -305,6 +336,7 @@ class PMHTResult:
     sigma2: float
     profile_chi2: float
     fisher: FloatArray
+    ambiguity: tuple[FloatArray, FloatArray, FloatArray] | None = None
 
 
 @dataclass
@@ -315,7 +347,9 @@ class PMHTMatcher:
     ``ins_drift_sigma`` m/sqrt(s); ``velocity_sigma`` m/s prior on the CV velocity; ``use_prior``; ``pda_spread``;
     ``map_sigma``; ``min_variability``, ``variability_ref`` (eq. 14 cut-off and weighting); ``max_nis``;
     ``mode`` "standard" | "retrodiction"; ``resolution_m`` scan step for maps without a native local grid
-    (coarsened so a scan reads at most ``max_scan_nodes`` map values)."""
+    (coarsened so a scan reads at most ``max_scan_nodes`` map values); ``variance_factor``, ``crlb_floor``,
+    ``ambiguity_floor`` (``ambiguity_grid``, ``ambiguity_mass``, ``ambiguity_deprior``) and ``partial_fixes``: the
+    fix covariance terms of the module docstring."""
 
     batch: int = 30
     candidates: int = 20
@@ -341,6 +375,11 @@ class PMHTMatcher:
     variance_factor: bool = True
     detection_prob: float = 0.9
     crlb_floor: bool = True
+    partial_fixes: bool = True
+    ambiguity_floor: bool = True
+    ambiguity_grid: int = 41
+    ambiguity_mass: float = 0.9
+    ambiguity_deprior: bool = False
     max_scan_nodes: int = 4096
     name: str = "pmht"
 
@@ -528,7 +567,76 @@ class PMHTMatcher:
         G = np.stack([gn_, ge_], axis=-1) / (2 * hstep)  # (T, c, 2)
         G = G[good & np.all(np.isfinite(G), axis=(1, 2))]
         J = np.einsum("tci,tcj->ij", G, G) / (float(rd.sigma) ** 2 + self.map_sigma**2)
-        return PMHTResult(X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J)
+        amb = self._ambiguity(frame, z, good, x_ins, half, X, g2, s2) if self.ambiguity_floor else None
+        return PMHTResult(
+            X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J, amb
+        )
+
+    def _ambiguity(
+        self,
+        frame: WorkFrame,
+        z: FloatArray,
+        good: NDArray[np.bool_],
+        x_ins: FloatArray,
+        half: FloatArray,
+        X: FloatArray,
+        g2: FloatArray,
+        s2: float,
+    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """Batch likelihood of a rigid offset of the INS track over the gate: offsets ``(K, 2)`` m, normalised
+        weights ``(K,)`` and the grid spacing ``(D_n, D_e)`` m (``None`` where no offset has a finite likelihood).
+
+        The likelihood of a rigid offset ``d`` of the INS track, ``p(d) ~ prod_t N(z_t; m(x_t + d), v_t)``, on
+        ``ambiguity_grid`` offsets a side spanning the last scan's gate (``|d_n| <= h_n``, ``|d_e| <= h_e``, spacing
+        ``D_n``, ``D_e``), with ``v_t = s^2 + |grad m|_t^2 (D_n^2 + D_e^2) / 12`` (the offset cell through the local
+        gradient: the grid point stands for its cell). :meth:`_ambiguity_cov` turns it into a covariance about a
+        smoothed position.
+
+        The EM's smoothed covariance and the Cramer-Rao bound describe the mode the EM climbed only; on a smooth map
+        with repeated features (the 10' gravity grid) the likelihood has several modes or a long ridge within the
+        gate, and the fix error is that spread."""
+        m = max(int(self.ambiguity_grid), 3)
+        hn, he = float(half[-1, 0]), float(half[-1, 1])
+        on, oe = np.linspace(-hn, hn, m), np.linspace(-he, he, m)
+        dn, de = 2 * hn / (m - 1), 2 * he / (m - 1)
+        ON, OE = np.meshgrid(on, oe, indexing="ij")
+        ON, OE = ON.ravel(), OE.ravel()
+        ll = np.zeros(ON.size)
+        cell2 = (dn * dn + de * de) / 12.0
+        for t in np.flatnonzero(good):
+            v = frame.sample(x_ins[t, 0] + ON, x_ins[t, 1] + OE).reshape(ON.size, -1)
+            var_t = s2 + g2[t] * cell2
+            r2 = np.sum((v - z[t]) ** 2, axis=1) / var_t
+            ll += np.where(np.isfinite(r2), -0.5 * r2, -np.inf)
+        if not np.any(np.isfinite(ll)):
+            return None
+        p = np.exp(ll - np.max(ll))
+        keep = p > 1e-12 * p.sum()
+        return np.column_stack([ON[keep], OE[keep]]), p[keep] / p[keep].sum(), np.array([dn, de])
+
+    def _ambiguity_cov(self, res: PMHTResult, k: int) -> tuple[FloatArray, float] | None:
+        """``(C, near)`` from the rigid-offset likelihood of :meth:`_ambiguity` at scan ``k``: ``C`` (2, 2) m^2 the
+        second moment of the offset posterior (flat prior over the gate) about the smoothed position ``X_k`` (each
+        grid point a uniform cell, ``+ D^2/12`` per axis); with ``ambiguity_deprior`` the gate's own information is
+        removed, ``C = (C_post^-1 - B^-1)^-1`` with ``B = diag(h_n^2, h_e^2) / 3`` the variance of the flat prior
+        (directions where the likelihood adds less than that get ``(10 max h)^2``; off by default: on the EIGEN-6C4
+        scenarios, 5 runs, it made the fixes more conservative, fix NEES 0.4-0.8, and the 1 mGal mean error larger,
+        1345 / 1431 m against 1287 / 1295 m for T = 15 / 30). ``near`` is the posterior mass within one and a half
+        cells of ``X_k`` (the 3 x 3 cells about the EM's mode: 1 where the likelihood is unambiguous at the grid's
+        resolution)."""
+        if res.ambiguity is None:
+            return None
+        off, p, D = res.ambiguity
+        hn, he = float(res.half[-1, 0]), float(res.half[-1, 1])
+        a = res.x_ins[k] + off - res.X[k, :2]
+        near = float(np.sum(p[np.all(np.abs(a) <= 1.5 * D, axis=1)]))
+        C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag(D**2) / 12.0
+        if not self.ambiguity_deprior:
+            return C, near
+        big = (10.0 * max(hn, he)) ** 2
+        info = np.linalg.inv(C) - np.diag([3.0 / hn**2, 3.0 / he**2])
+        ev, V = np.linalg.eigh(0.5 * (info + info.T))
+        return (V / np.maximum(ev, 1.0 / big)) @ V.T, near
 
     def _fix(self, res: PMHTResult, k: int) -> Fix:
         t = float(res.t[k])
@@ -550,22 +658,25 @@ class PMHTMatcher:
         cov = 0.5 * (res.P[k, :2, :2] + res.P[k, :2, :2].T)
         if self.variance_factor:  # a-posteriori variance factor: mean NIS per 2-D pseudo-measurement / 2
             cov = cov * max(1.0, res.nis / 2.0)
-        if self.crlb_floor:  # smallest k with k cov >= J^-1 (Loewner order): never claim more than the CRLB
-            ev, evec = np.linalg.eigh(cov)
-            if np.all(ev > 0):
-                w_ = evec * np.sqrt(ev)
-                kk = float(np.linalg.eigvalsh(w_.T @ res.fisher @ w_)[0])  # min eig of cov^1/2 J cov^1/2
-                if kk < 1.0:
-                    cov = cov / max(kk, 1e-12)
-            sig_max = float(np.sqrt(np.linalg.eigvalsh(cov)[-1]))
-            if sig_max > float(np.max(res.half[k])):
-                return Fix.no_fix(
-                    t,
-                    f"flat map: fix sigma {sig_max:.3g} m (Cramer-Rao bound) exceeds the gate half-width "
-                    f"{float(np.max(res.half[k])):.3g} m",
-                    self.name,
-                    res.nis,
-                )
+        big = (10.0 * float(np.max(res.half[k]))) ** 2
+        if self.crlb_floor:  # never claim more than the CRLB: the Loewner maximum of cov and J^-1 (J may be singular)
+            cov = _loewner_max(cov, res.fisher, big, information=True)
+        amb = self._ambiguity_cov(res, k) if self.ambiguity_floor else None
+        if amb is not None and amb[1] < self.ambiguity_mass:
+            # the batch likelihood is ambiguous within the gate (mass away from the EM's mode): cover its spread
+            cov = _loewner_max(cov, amb[0], big)
+        ev, V = np.linalg.eigh(0.5 * (cov + cov.T))
+        ev = np.minimum(ev, big)
+        cov = (V * ev) @ V.T
+        sig = float(np.sqrt(ev[0] if self.partial_fixes else ev[-1]))
+        if sig > float(np.max(res.half[k])):
+            return Fix.no_fix(
+                t,
+                f"flat map: fix sigma {sig:.3g} m exceeds the gate half-width {float(np.max(res.half[k])):.3g} m"
+                + (" in every direction" if self.partial_fixes else ""),
+                self.name,
+                res.nis,
+            )
         if self.variability_ref > 0:  # eq. 14 weighting: inflate where C / s^2 is below the reference
             cov = cov * max(1.0, self.variability_ref / max(res.variability / res.sigma2, 1e-300))
         lat, lon = res.frame.to_latlon(xk[0], xk[1])
