@@ -60,9 +60,16 @@ class DemoConfig:
     grade: str = "tactical"
     imu_rate_hz: float = 50.0
     reading_interval_s: float = 0.5
-    reading_sigma_nt: float = 100.0
+    reading_sigma_nt: float = 60.0
     matcher: dict[str, Any] = field(
-        default_factory=lambda: {"kind": "ml", "demean": True, "min_variability": 0.3, "window_sigma": 4.0}
+        default_factory=lambda: {
+            "kind": "ml",
+            "demean": True,
+            "min_variability": 0.3,
+            "window_sigma": 4.0,
+            "min_fix_sigma_m": 80.0,  # the tie line differs from the map by 20-45 nT with ~200 m correlation length
+            "max_fix_sigma_m": 500.0,
+        }
     )
     fusion: str = "ukf"
     window: int = 120
