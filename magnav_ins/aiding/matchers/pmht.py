@@ -15,7 +15,9 @@ For a batch of ``T`` scans (field readings ``s_t`` with INS-indicated positions 
    ``iterations``.
 3. Kinematics within the batch (eq. 6-7): ``"cv"`` constant velocity ``[n, e, v_n, v_e]`` with white acceleration
    ``accel_sigma``; or ``"ins"``: position only, moved by the INS displacement between scans plus a random walk
-   ``ins_drift_sigma`` m/sqrt(s) (the INS is far better than CV over a batch when the vehicle turns).
+   ``ins_drift_sigma`` m/sqrt(s) (the INS is far better than CV over a batch when the vehicle turns); with
+   ``adaptive_drift`` (ours) the random-walk step is at least the growth of the INS position sigma between the two
+   scans (a tactical IMU drifts kilometres within a 300 s batch; a fixed 0.05 m/sqrt(s) made the batch rigid).
 4. Output: ``mode="standard"`` one fix at the last scan (smoothed state, covariance ``P_T|T``); ``"retrodiction"``
    a fix per scan (:meth:`PMHTMatcher.match_all`, smoothed covariances). The fix covariance is weighted by the map
    feature variability (eq. 14) ``C``: multiplied by ``max(1, variability_ref / (C / s^2))``; aiding stops (no fix,
@@ -380,6 +382,7 @@ class PMHTMatcher:
     ambiguity_grid: int = 41
     ambiguity_mass: float = 0.9
     ambiguity_deprior: bool = False
+    adaptive_drift: bool = True
     max_scan_nodes: int = 4096
     name: str = "pmht"
 
@@ -487,6 +490,11 @@ class PMHTMatcher:
         half = np.array([sigma_window(c, self.gate_sigma, self.window_floor_m) for c in cov])
         if not np.all(np.isfinite(half)):
             return "prior covariance not finite"
+        # INS drift within the batch (adaptive_drift): growth of the position sigma between scans (m), and the drift
+        # of each scan relative to the last one (the sum of the growths after it)
+        sig_ins = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+        step_growth = np.maximum(np.diff(sig_ins), 0.0)
+        rel_drift = np.append(np.cumsum(step_growth[::-1])[::-1], 0.0) if self.adaptive_drift else np.zeros(T)
         cand, dist, grad2, counts, var, step = self._lookup(frame, fmap, x_ins, half, z, s2)
         counts = np.where(good, counts, 0)
         if np.sum(counts > 0) < 2:
@@ -519,7 +527,10 @@ class PMHTMatcher:
         else:
             d = 2
             F = np.tile(np.eye(2), (T - 1, 1, 1))
-            Q = np.eye(2)[None] * (self.ins_drift_sigma**2 * dts)[:, None, None]
+            q = self.ins_drift_sigma**2 * dts
+            if self.adaptive_drift:  # the INS's own drift between scans: the growth of its position sigma
+                q = np.maximum(q, step_growth**2)
+            Q = np.eye(2)[None] * q[:, None, None]
             u = np.diff(x_ins, axis=0)
             X0 = x_ins.copy()
         P0 = np.zeros((d, d))
@@ -567,7 +578,7 @@ class PMHTMatcher:
         G = np.stack([gn_, ge_], axis=-1) / (2 * hstep)  # (T, c, 2)
         G = G[good & np.all(np.isfinite(G), axis=(1, 2))]
         J = np.einsum("tci,tcj->ij", G, G) / (float(rd.sigma) ** 2 + self.map_sigma**2)
-        amb = self._ambiguity(frame, z, good, x_ins, half, X, g2, s2) if self.ambiguity_floor else None
+        amb = self._ambiguity(frame, z, good, x_ins, half, X, g2, s2, rel_drift) if self.ambiguity_floor else None
         return PMHTResult(
             X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J, amb
         )
@@ -582,14 +593,16 @@ class PMHTMatcher:
         X: FloatArray,
         g2: FloatArray,
         s2: float,
+        rel_drift: FloatArray,
     ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
         """Batch likelihood of a rigid offset of the INS track over the gate: offsets ``(K, 2)`` m, normalised
         weights ``(K,)`` and the grid spacing ``(D_n, D_e)`` m (``None`` where no offset has a finite likelihood).
 
         The likelihood of a rigid offset ``d`` of the INS track, ``p(d) ~ prod_t N(z_t; m(x_t + d), v_t)``, on
         ``ambiguity_grid`` offsets a side spanning the last scan's gate (``|d_n| <= h_n``, ``|d_e| <= h_e``, spacing
-        ``D_n``, ``D_e``), with ``v_t = s^2 + |grad m|_t^2 (D_n^2 + D_e^2) / 12`` (the offset cell through the local
-        gradient: the grid point stands for its cell). :meth:`_ambiguity_cov` turns it into a covariance about a
+        ``D_n``, ``D_e``), with ``v_t = s^2 + |grad m|_t^2 ((D_n^2 + D_e^2) / 12 + r_t^2)`` (the offset cell through
+        the local gradient: the grid point stands for its cell; ``r_t`` the INS drift of scan ``t`` relative to the
+        last scan, ``rel_drift``, zero without ``adaptive_drift``). :meth:`_ambiguity_cov` turns it into a covariance about a
         smoothed position.
 
         The EM's smoothed covariance and the Cramer-Rao bound describe the mode the EM climbed only; on a smooth map
@@ -605,7 +618,7 @@ class PMHTMatcher:
         cell2 = (dn * dn + de * de) / 12.0
         for t in np.flatnonzero(good):
             v = frame.sample(x_ins[t, 0] + ON, x_ins[t, 1] + OE).reshape(ON.size, -1)
-            var_t = s2 + g2[t] * cell2
+            var_t = s2 + g2[t] * (cell2 + rel_drift[t] ** 2)
             r2 = np.sum((v - z[t]) ** 2, axis=1) / var_t
             ll += np.where(np.isfinite(r2), -0.5 * r2, -np.inf)
         if not np.any(np.isfinite(ll)):
