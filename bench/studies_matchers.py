@@ -6,8 +6,9 @@ tables (``--json``: one JSON line instead):
 
 * Storms hallway: Bayes grid horizontal RMS against Storms' 100-run Monte Carlo bound (< 0.3 m, 004 sec. 4).
 * PMHT gravity: per (IMU, T, sigma) the mean horizontal error, divergence rate and fix availability over the runs,
-  the free-inertial mean error, and the time after which the aided RMS (over runs) stays below the free-inertial
-  RMS; beside it Wang et al. (2022, seed 001) Table 2 (GGplus gravity field map, 250 m grid at 100 m height).
+  the free-inertial mean error, the time after which the aided RMS (over runs) stays below the free-inertial
+  RMS, the fix NEES (mean and median over the issued fixes; 2 when the fix covariances are right) and the filter's
+  NEES; beside it Wang et al. (2022, seed 001) Table 2 (GGplus gravity field map, 250 m grid at 100 m height).
 * Shockley roads: availability, share of fixes within 3 m and RMS per matcher (Shockley ch. IV).
 
 Run: ``python bench/studies_matchers.py [--runs N] [--jobs J] [--only STEM ...] [--out DIR] [--from DIR] [--json]``.
@@ -75,6 +76,22 @@ def crossover_s(ds: Any, name: str) -> float | None:
     return float(t[k]) if k < len(t) else None
 
 
+def fix_nees(ds: Any, name: str) -> tuple[float | None, float | None]:
+    """Mean and median over the issued fixes of all runs of the fix NEES ``d' P^-1 d`` (2-D: 2 when the fix
+    covariances are right) of estimator ``name``, from the fix errors, sigmas and correlations in ``runs.nc``."""
+    e = ds.sel(estimator=name)
+    dn, de = np.asarray(e["fix_err_north_m"], float), np.asarray(e["fix_err_east_m"], float)
+    sn, se = np.asarray(e["fix_sigma_north_m"], float), np.asarray(e["fix_sigma_east_m"], float)
+    r = np.asarray(e["fix_corr_ne"], float)
+    ok = (np.asarray(e["fix_available"]) > 0) & np.isfinite(dn) & np.isfinite(de) & (sn > 0) & (se > 0) & (abs(r) < 1)
+    if not np.any(ok):
+        return None, None
+    dn, de, sn, se, r = dn[ok], de[ok], sn[ok], se[ok], r[ok]
+    un, ue = dn / sn, de / se
+    nees = (un**2 - 2 * r * un * ue + ue**2) / (1 - r**2)
+    return float(np.mean(nees)), float(np.median(nees))
+
+
 def _pct(x: float | None) -> str:
     return "–" if x is None else f"{100 * x:.0f} %"
 
@@ -94,6 +111,7 @@ def pmht_rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
         e = doc["estimators"][est.name]
         T = int(est.matcher.get("batch", 30))
         cross = crossover_s(ds, est.name) if ds is not None else None
+        fn_mean, fn_median = fix_nees(ds, est.name) if ds is not None else (None, None)
         wang = WANG_TABLE2.get((sigma, T)) if sc.imu.grade == "precision" else None
         rows.append(
             {
@@ -111,6 +129,9 @@ def pmht_rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
                 "availability": e["availability"],
                 "fixes_issued": e["fixes_issued"],
                 "fix_attempts": e["fix_attempts"],
+                "fix_nees_mean": fn_mean,
+                "fix_nees_median": fn_median,
+                "filter_nees": e["nees_mean"],
                 "free_mean_m": free["mean_horizontal_m"],
                 "free_final_m": free["final_horizontal_m"],
                 "free_divergence_rate": free["divergence_rate"],
@@ -127,8 +148,9 @@ def pmht_rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
 def pmht_table(rows: list[dict[str, Any]]) -> str:
     head = (
         "| IMU | T | sigma (mGal = 1e-5 m/s^2) | runs | mean error (m) | diverged | fixes issued | final (m) "
-        "| free inertial mean / final (m), diverged | aided below free after (h) | Wang Table 2: mean / diverged |\n"
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "| free inertial mean / final (m), diverged | aided below free after (h) | fix NEES mean / median "
+        "| filter NEES | Wang Table 2: mean / diverged |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     )
     lines = [head]
     for r in rows:
@@ -137,7 +159,8 @@ def pmht_table(rows: list[dict[str, Any]]) -> str:
             f"| {r['imu']} ({r['hours']:g} h) | {r['T']} | {r['sigma_mgal']:g} | {r['runs']} | {_m(r['mean_m'])} "
             f"| {_pct(r['divergence_rate'])} | {_pct(r['availability'])} | {_m(r['final_m'])} "
             f"| {_m(r['free_mean_m'])} / {_m(r['free_final_m'])}, {_pct(r['free_divergence_rate'])} "
-            f"| {'never' if r['below_free_after_h'] is None else r['below_free_after_h']} | {wang} |"
+            f"| {'never' if r['below_free_after_h'] is None else r['below_free_after_h']} "
+            f"| {_m(r['fix_nees_mean'], 2)} / {_m(r['fix_nees_median'], 2)} | {_m(r['filter_nees'], 2)} | {wang} |"
         )
     return "\n".join(lines)
 
