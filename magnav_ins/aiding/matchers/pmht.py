@@ -602,8 +602,8 @@ class PMHTMatcher:
         ``ambiguity_grid`` offsets a side spanning the last scan's gate (``|d_n| <= h_n``, ``|d_e| <= h_e``, spacing
         ``D_n``, ``D_e``), with ``v_t = s^2 + |grad m|_t^2 ((D_n^2 + D_e^2) / 12 + r_t^2)`` (the offset cell through
         the local gradient: the grid point stands for its cell; ``r_t`` the INS drift of scan ``t`` relative to the
-        last scan, ``rel_drift``, zero without ``adaptive_drift``). :meth:`_ambiguity_cov` turns it into a covariance about a
-        smoothed position.
+        last scan, ``rel_drift``, zero without ``adaptive_drift``). :meth:`_ambiguity_cov` turns it into a
+        covariance about a smoothed position.
 
         The EM's smoothed covariance and the Cramer-Rao bound describe the mode the EM climbed only; on a smooth map
         with repeated features (the 10' gravity grid) the likelihood has several modes or a long ridge within the
@@ -632,11 +632,12 @@ class PMHTMatcher:
         second moment of the offset posterior (flat prior over the gate) about the smoothed position ``X_k`` (each
         grid point a uniform cell, ``+ D^2/12`` per axis); with ``ambiguity_deprior`` the gate's own information is
         removed, ``C = (C_post^-1 - B^-1)^-1`` with ``B = diag(h_n^2, h_e^2) / 3`` the variance of the flat prior
-        (directions where the likelihood adds less than that get ``(10 max h)^2``; off by default: on the EIGEN-6C4
-        scenarios, 5 runs, it made the fixes more conservative, fix NEES 0.4-0.8, and the 1 mGal mean error larger,
-        1345 / 1431 m against 1287 / 1295 m for T = 15 / 30). ``near`` is the posterior mass within one and a half
-        cells of ``X_k`` (the 3 x 3 cells about the EM's mode: 1 where the likelihood is unambiguous at the grid's
-        resolution)."""
+        (directions where the likelihood adds less than that get ``(10 max h)^2``). Off by default: on the EIGEN-6C4
+        scenarios (5 runs, T = 15 / 30) it made the fixes more conservative (1 mGal fix NEES 0.4 / 0.8) and the mean
+        errors larger (1 mGal 1303 / 1416 m against 1295 / 1358 m; tactical 30.6 / 34.0 km against 24.9 / 26.6 km);
+        de-priored means (the fix at the likelihood's mean) were far worse (1 mGal fix errors of 35 km). ``near`` is
+        the posterior mass within one and a half cells of ``X_k`` (the 3 x 3 cells about the EM's mode: 1 where the
+        likelihood is unambiguous at the grid's resolution)."""
         if res.ambiguity is None:
             return None
         off, p, D = res.ambiguity
