@@ -13,10 +13,15 @@ profile, removes a constant bias, 003 sec. 4.6) and ``difference`` (successive d
 
 * ML picks the largest likelihood.
 * MLR divides it by the largest likelihood at least ``min_distance_m`` away and issues a fix only when the ratio
-  exceeds ``ratio_threshold`` (003 sec. 4.3.2: 20 m and 2).
+  exceeds ``ratio_threshold`` (003 sec. 4.3.2: 20 m and 2). Shockley compares every reading with the whole map;
+  inside a search window that holds no candidate ``min_distance_m`` from the peak (a prior 1-sigma of a few metres
+  gives a window of +-5 m) the ratio is infinite and MLR issues exactly the ML fixes: use ``search_window=False``
+  (or a prior wide enough) for the ratio test to act.
 * ABL normalises the likelihoods to sum to one, requires a normalised peak above ``peak_threshold`` and chooses
-  the bin (side ``bin_size_m``) holding the largest normalised mass (003 sec. 4.3.3; the thesis gives no values,
-  ours are defaults to tune).
+  the bin holding the largest normalised mass (003 sec. 4.3.3; the thesis gives no values, ours are defaults to
+  tune). On a road map the bin is ``bin_size_m`` long and slides along the map's sequence of points (one road, one
+  travel direction; the fix is the bin's point nearest its likelihood-weighted centre); on a grid it is a square
+  of side ``bin_size_m`` centred on each node.
 
 The scan runs over a search window around the prior (the thesis' suggested improvement; ``search_window=True``,
 half-width ``window_sigma`` times the prior 1-sigma) or over the whole grid map (``search_window=False``).
@@ -64,7 +69,9 @@ class Surface:
     grid's axes (ni,), (nj,) and ``logl`` is the flattened (ni, nj) surface; for scattered candidates
     (``shape = None``, road maps) ``n``, ``e`` (M,) are the candidate positions. ``step`` the grid spacing m;
     ``variability`` the map feature variability (unit^2) of the window; ``sigma2`` the likelihood variance used
-    (unit^2); ``half`` the window half-widths (m)."""
+    (unit^2); ``half`` the window half-widths (m). Road maps also give each candidate its position ``along`` the
+    map's sequence of points (m; segments offset far apart so no bin spans two roads) and its travel direction
+    ``lane`` (0 forward, 1 reversed): ABL's bins slide along the map's sequence of points (003 sec. 4.3.3)."""
 
     frame: WorkFrame
     logl: FloatArray
@@ -76,6 +83,8 @@ class Surface:
     sigma2: float
     half: tuple[float, float] = (np.inf, np.inf)
     k_max: int = -1
+    along: FloatArray | None = None
+    lane: NDArray[np.int64] | None = None
 
 
 @dataclass
@@ -298,7 +307,9 @@ class LikelihoodMatcher:
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
         step = float(np.median(np.diff(s_at)[np.diff(seg_run) == 0])) if len(s_at) > 1 else 1.0
-        return Surface(frame, logl, cn, ce, None, step, variability, s2, (half_n, half_e))
+        along = np.tile(s_glob[sel], len(dirs))
+        lane = np.repeat(np.arange(len(dirs), dtype=np.int64), sel.size)
+        return Surface(frame, logl, cn, ce, None, step, variability, s2, (half_n, half_e), -1, along, lane)
 
     # ------------------------------------------------------------------ decision
     def match(self, window: MatchWindow, fmap: FieldMap) -> Fix:
@@ -360,14 +371,18 @@ class LikelihoodMatcher:
             if p is None:
                 p = np.exp(logl - lmax)
                 p /= p.sum()
-            mass = _bin_mass(p, surf, self.bin_size_m)
-            kb = int(np.argmax(mass))
-            score = float(mass[kb])
-            if grid:
-                bi, bj = divmod(kb, surf.shape[1])  # type: ignore[index]
-                n_fix, e_fix = float(surf.n[bi]), float(surf.e[bj])
-            else:
+            if not grid and surf.along is not None and surf.lane is not None:
+                kb, score = _road_bin(p, surf.along, surf.lane, self.bin_size_m)
                 n_fix, e_fix = float(surf.n[kb]), float(surf.e[kb])
+            else:
+                mass = _bin_mass(p, surf, self.bin_size_m)
+                kb = int(np.argmax(mass))
+                score = float(mass[kb])
+                if grid:
+                    bi, bj = divmod(kb, surf.shape[1])  # type: ignore[index]
+                    n_fix, e_fix = float(surf.n[bi]), float(surf.e[bj])
+                else:
+                    n_fix, e_fix = float(surf.n[kb]), float(surf.e[kb])
         if grid:
             if about != (n_fix, e_fix):  # ABL moved the fix off the peak
                 _, snn, sne, see, _ = grid_moments(l2, surf.n, surf.e, lmax, n_fix, e_fix)
@@ -402,6 +417,29 @@ def _bin_mass(p: FloatArray, surf: Surface, bin_size_m: float) -> FloatArray:
     tree = cKDTree(pts)
     groups = tree.query_ball_point(pts, r=bin_size_m / 2.0)
     return np.array([p[g].sum() for g in groups])
+
+
+def _road_bin(p: FloatArray, along: FloatArray, lane: NDArray[np.int64], bin_size_m: float) -> tuple[int, float]:
+    """ABL on a road map (Shockley 003 sec. 4.3.3): a bin of length ``bin_size_m`` (m) slides along the map's
+    sequence of points (same road, same travel direction); the bin holding the most normalised likelihood ``p`` wins.
+    The fix is the point of that bin nearest to the bin's likelihood-weighted centre along the road (so a lone sharp
+    peak is not moved by up to half a bin to whichever overlapping bin happens to hold a little more mass).
+    Returns (index of the fix candidate, mass of the winning bin)."""
+    span = float(np.max(along) - np.min(along)) + 10.0 * bin_size_m + 1.0
+    coord = along - np.min(along) + lane * span  # one line: lanes never share a bin
+    order = np.argsort(coord, kind="stable")
+    c, q = coord[order], p[order]
+    cum = np.concatenate([[0.0], np.cumsum(q)])
+    half = 0.5 * bin_size_m
+    lo = np.searchsorted(c, c - half - 1e-9, "left")
+    hi = np.searchsorted(c, c + half + 1e-9, "right")
+    mass = cum[hi] - cum[lo]
+    b = int(np.argmax(mass))
+    inside = slice(int(lo[b]), int(hi[b]))
+    w = q[inside]
+    centre = float(np.sum(w * c[inside]) / np.sum(w)) if np.sum(w) > 0 else float(c[b])
+    k = int(lo[b]) + int(np.argmin(np.abs(c[inside] - centre)))
+    return int(order[k]), float(mass[b])
 
 
 def _local_grid(fmap: FieldMap, frame: WorkFrame) -> tuple[FloatArray, float, float, float, float] | None:
