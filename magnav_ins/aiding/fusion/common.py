@@ -383,6 +383,27 @@ def step_matrices(
 _HELD = (2, 5)
 
 
+def _held_transition(Phi: FloatArray) -> FloatArray:
+    """The transition that the altitude hold gives a covariance step: ``Phi`` with the held states (:data:`_HELD`)
+    carried over unchanged (their rows the identity's) and decoupled from the others (their columns zero in the
+    other rows). With it ``Phi_h P+ Phi_h^T + Q_h`` is the held prediction of :meth:`InertialCore._advance_cov`
+    (``Q_h``: ``Qd`` and the held states' ``Phi`` columns' share, ``Phi_rD P_DD Phi_rD^T``, on the other states),
+    so the smoother's gain ``P+ Phi_h^T (P-)^-1`` and mean ``Phi_h m`` belong to the model its covariances follow."""
+    out = np.array(Phi, dtype=float)
+    held = list(_HELD)
+    out[:, held] = 0.0
+    out[held, :] = 0.0
+    out[held, held] = 1.0
+    return out
+
+
+def _clamped(nav: NavState, h_m: float) -> NavState:
+    """``nav`` with the altitude hold's vertical channel: height ``h_m`` (m), down velocity 0."""
+    v = np.array(nav.v_n, dtype=float)
+    v[2] = 0.0
+    return NavState(nav.t, nav.lat, nav.lon, float(h_m), v, nav.q_nb)
+
+
 class InertialCore:
     """Strapdown INS (:class:`ins.strapdown.StrapdownStepper`) with the 15-state error covariance of
     :mod:`ins.error_model` propagated alongside, plus a short replay buffer for late fixes.
@@ -729,8 +750,11 @@ class InertialCore:
         error estimate before its reset, zero without a fix). It is linearised about the filter's trajectory,
         which drifts between sparse fixes. Each further pass (``iterations`` > 1) relinearises about the previous
         smoothed trajectory and biases (iterated extended Kalman smoother = Gauss-Newton on the batch problem,
-        Bell 1994): :meth:`_relinearised_pass`. Returns the smoothed states at the step times and their
-        covariances (N,n,n)."""
+        Bell 1994): :meth:`_relinearised_pass`. Under an altitude hold every pass uses the filter's held model: the
+        down position and velocity errors (:data:`_HELD`) are carried unchanged and uncorrelated
+        (:func:`_held_transition`, as the covariance prediction holds them) and each smoothed state reports the hold
+        in force over its step (height, zero down velocity), as the INS does. Returns the smoothed states at the
+        step times and their covariances (N,n,n)."""
         from ...ins.error_model import apply_error
 
         if self._history is None:
@@ -740,6 +764,7 @@ class InertialCore:
         H = self._history
         n = len(H)
         n_x = self.n_states
+        holds = self._holds()
         e = np.zeros(n_x)
         Ps = H[-1][3].copy()
         out_nav = [H[-1][5]]
@@ -747,11 +772,14 @@ class InertialCore:
         out_P = [Ps]
         for k in range(n - 2, -1, -1):
             Phi, Pm1, dx1 = H[k + 1][1], H[k + 1][2], H[k + 1][4]
+            if holds is not None:
+                Phi = _held_transition(Phi)
             Pp = H[k][3]
             C = np.linalg.solve(Pm1.T, (Pp @ Phi.T).T).T  # Pp Phi^T Pm1^-1
             e = C @ (e + dx1)
             Ps = symmetrise(Pp + C @ (Ps - Pm1) @ C.T, 0.0)
-            out_nav.append(apply_error(H[k][5], -e[:9]))
+            nav = apply_error(H[k][5], -e[:9])
+            out_nav.append(nav if holds is None else _clamped(nav, holds[k]))
             out_b.append(H[k][8] - e[9:n_x])
             out_P.append(Ps)
         out_nav.reverse()
@@ -764,6 +792,13 @@ class InertialCore:
             np.array([x.h for x in out_nav]), np.array([x.v_n for x in out_nav]), np.array([x.q_nb for x in out_nav]),
         )  # fmt: skip
         return traj, np.array(out_P)
+
+    def _holds(self) -> list[float] | None:
+        """The altitude hold in force at each smoother step (m; None without a hold): the height of the INS state
+        recorded there, which the hold clamps (:meth:`set_altitude_hold` may move it during a run)."""
+        if self._altitude_hold is None or self._history is None:
+            return None
+        return [float(h[5].h) for h in self._history]
 
     def _relinearised_pass(self, nom: list[NavState], b_nom: list[FloatArray]) -> tuple[list, list, list]:
         """One Kalman filter + RTS pass about a nominal trajectory ``nom`` (NavState at each step time) with
@@ -778,12 +813,23 @@ class InertialCore:
         + v`` (with a map bias: ``z = fix - nom - b_map_nom = -e[N,E] - e[b_map] + v``; with a height:
         ``h_src - h_nom = e_D + v``), Joseph update. Then the RTS recursion
         ``m_s(k) = m+_k + C_k (m_s(k+1) - m-_{k+1})`` and the new nominal ``nom_k - m_s(k)``. Recovery
-        inflation of the online filter is not repeated (the fixes count at their own noise)."""
+        inflation of the online filter is not repeated (the fixes count at their own noise).
+
+        Altitude hold (:meth:`_holds`: the hold in force at each step, which :meth:`set_altitude_hold` may move):
+        the nominal's height and down velocity are set to the hold's, the INS re-run clamps to the step's hold, so
+        the held states' defect is zero; their error is propagated as the online filter's covariance holds it
+        (``Phi_h``, :func:`_held_transition`). Propagating them as free states instead (the unstable vertical
+        channel, with the clamp's jump fed back as a defect at every step) made the smoothed height and down
+        velocity run away over a long run and drag the horizontal track (issue 4: 1.6 km after two passes on a
+        3,530 s flight)."""
         from ...ins.error_model import apply_error, nav_error
         from ...ins.strapdown import StrapdownStepper
 
         n = len(nom)
         n_x = self.n_states
+        holds = self._holds()
+        if holds is not None:
+            nom = [_clamped(x, h) for x, h in zip(nom, holds, strict=True)]
         times = np.array([x.t for x in nom])
         T = np.array([r[0] for r in self._raw]) if self._raw else np.zeros(0)
         fixes: dict[int, list] = {}
@@ -791,7 +837,8 @@ class InertialCore:
             k = int(np.argmin(np.abs(times - entry[0])))
             if abs(times[k] - entry[0]) < 1e-6:
                 fixes.setdefault(k, []).append(entry)
-        m = np.r_[nav_error(nom[0], self._init_nav), b_nom[0]]  # the filter starts from zero biases
+        init = self._init_nav if holds is None else _clamped(self._init_nav, holds[0])
+        m = np.r_[nav_error(nom[0], init), b_nom[0]]  # the filter starts from zero biases
         P = self._P0.copy()
         m_minus, P_minus, m_plus, P_plus, Phis = [], [], [], [], [None]
         j = int(np.searchsorted(T, times[0] + 1e-9))
@@ -799,7 +846,7 @@ class InertialCore:
         for k in range(n):
             if k > 0:
                 b = b_nom[k - 1]
-                st = StrapdownStepper(nom[k - 1], altitude_hold=self._altitude_hold)
+                st = StrapdownStepper(nom[k - 1], altitude_hold=None if holds is None else holds[k])
                 if prev is not None:
                     st.prime(*prev)
                 C_sum, fn_sum, sum_dt = np.zeros((3, 3)), np.zeros(3), 0.0
@@ -829,8 +876,15 @@ class InertialCore:
                 dt_k = times[k] - times[k - 1]
                 Phi, Qd = step_matrices(end, C_sum, fn_sum, sum_dt, dt_k, self.noise, self.extra, Cf_sum, Cw_sum)
                 d = np.r_[nav_error(end, nom[k]), self._propagate_aux(b, dt_k) - b_nom[k]]
-                m = Phi @ m - d
+                P_held = np.diag(P)[list(_HELD)].copy()
                 P = symmetrise(Phi @ P @ Phi.T + Qd, 0.0)
+                if holds is not None:  # the online filter's held prediction (_advance_cov), its transition Phi_h
+                    P[_HELD, :] = 0.0
+                    P[:, _HELD] = 0.0
+                    P[_HELD, _HELD] = P_held
+                    Phi = _held_transition(Phi)
+                    d[list(_HELD)] = 0.0  # the re-run and the nominal share the hold (zero up to rounding)
+                m = Phi @ m - d
                 Phis.append(Phi)
             m_minus.append(m.copy())
             P_minus.append(P.copy())
@@ -851,14 +905,19 @@ class InertialCore:
                 P = symmetrise(IKH @ P @ IKH.T + K @ R @ K.T, 0.0)
             m_plus.append(m.copy())
             P_plus.append(P.copy())
+
+        def corrected(k: int, ms: FloatArray) -> NavState:
+            nav = apply_error(nom[k], -ms[:9])
+            return nav if holds is None else _clamped(nav, holds[k])
+
         ms, Ps = m_plus[-1], P_plus[-1]
-        out_nav, out_b, out_P = [apply_error(nom[-1], -ms[:9])], [b_nom[-1] - ms[9:n_x]], [Ps]
+        out_nav, out_b, out_P = [corrected(n - 1, ms)], [b_nom[-1] - ms[9:n_x]], [Ps]
         for k in range(n - 2, -1, -1):
             Pm1 = P_minus[k + 1]
             C = np.linalg.solve(Pm1.T, (P_plus[k] @ Phis[k + 1].T).T).T
             ms = m_plus[k] + C @ (ms - m_minus[k + 1])
             Ps = symmetrise(P_plus[k] + C @ (Ps - Pm1) @ C.T, 0.0)
-            out_nav.append(apply_error(nom[k], -ms[:9]))
+            out_nav.append(corrected(k, ms))
             out_b.append(b_nom[k] - ms[9:n_x])
             out_P.append(Ps)
         return out_nav[::-1], out_b[::-1], out_P[::-1]
