@@ -44,14 +44,23 @@ def main() -> None:
 
     fmap = load_map("builtin:osborne-magnetic")
     flight = flight_over_map(
-        fmap, start=(math.radians(-21.93), math.radians(140.62)), heading=math.radians(80), speed_mps=60.0,
-        duration_s=args.seconds + 10.0, rate_hz=args.rate, altitude_m=400.0, seed=1,
+        fmap,
+        start=(math.radians(-21.93), math.radians(140.62)),
+        heading=math.radians(80),
+        speed_mps=60.0,
+        duration_s=args.seconds + 10.0,
+        rate_hz=args.rate,
+        altitude_m=400.0,
+        seed=1,
     )
     port = free_udp_port()
     link = MavLink(f"udpin:127.0.0.1:{port}", source_system=1, peer_system=1, peer_component=1)
     config = BridgeConfig(
-        output="global_position_sensor", output_rate_hz=5.0, imu_rate_hz=args.rate,
-        reading_interval_s=args.reading_interval, init_sigma_m=10.0,
+        output="global_position_sensor",
+        output_rate_hz=5.0,
+        imu_rate_hz=args.rate,
+        reading_interval_s=args.reading_interval,
+        init_sigma_m=10.0,
     )
 
     def factory(nav0, sigma_m):
@@ -74,10 +83,16 @@ def main() -> None:
 
     outs = [o for o in rec.outputs if o.healthy]
     t = np.array([o.fields["time_usec"] * 1e-6 for o in outs])
-    err = horizontal_error_m(
-        [o.lat for o in outs], [o.lon for o in outs], np.interp(t, flight.truth.t, flight.truth.lat),
-        np.interp(t, flight.truth.t, flight.truth.lon),
-    ) if outs else np.array([np.nan])
+    err = (
+        horizontal_error_m(
+            [o.lat for o in outs],
+            [o.lon for o in outs],
+            np.interp(t, flight.truth.t, flight.truth.lat),
+            np.interp(t, flight.truth.t, flight.truth.lon),
+        )
+        if outs
+        else np.array([np.nan])
+    )
     lat_ms = np.array(bridge.latencies_s) * 1e3
     h = bridge.health
     result = {

@@ -22,7 +22,9 @@ def free_udp_port() -> int:
 def pair(**bridge_kwargs):
     port = free_udp_port()
     br = L.MavLink(f"udpin:127.0.0.1:{port}", source_system=1, source_component=191, **bridge_kwargs)
-    ap = L.MavLink(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1, signing_key=bridge_kwargs.get("signing_key"))
+    ap = L.MavLink(
+        f"udpout:127.0.0.1:{port}", source_system=1, source_component=1, signing_key=bridge_kwargs.get("signing_key")
+    )
     return br, ap
 
 
@@ -57,7 +59,11 @@ def test_highres_imu_round_trip_in_si():
 
 @pytest.mark.parametrize(
     ("raw", "unit"),
-    [([0.21, 0.03, 0.45], "gauss"), ([210.0, 30.0, 450.0], "milligauss"), ([210000.0, 30000.0, 450000.0], "milligauss*1000")],
+    [
+        ([0.21, 0.03, 0.45], "gauss"),
+        ([210.0, 30.0, 450.0], "milligauss"),
+        ([210000.0, 30000.0, 450000.0], "milligauss*1000"),
+    ],
 )
 def test_magnetometer_scale_detection(raw, unit):
     nt, detected = L.highres_mag_to_nt(np.array(raw))
@@ -161,12 +167,29 @@ def test_gps_input_and_global_position_sensor_encode_si():
         ap.send_heartbeat(autopilot=True)  # a udpin link answers whoever spoke to it last
         collect(br, lambda g: any(isinstance(m, L.Heartbeat) for m in g))
         br.send_gps_input(
-            t_unix=1.7e9, lat=lat, lon=lon, h_msl=320.0, v_n=np.array([10.0, -2.0, 0.5]), sigma_h=12.0, sigma_v=3.0,
-            sigma_speed=0.2, healthy=True,
+            t_unix=1.7e9,
+            lat=lat,
+            lon=lon,
+            h_msl=320.0,
+            v_n=np.array([10.0, -2.0, 0.5]),
+            sigma_h=12.0,
+            sigma_v=3.0,
+            sigma_speed=0.2,
+            healthy=True,
         )
         br.send_global_position_sensor(
-            target_system=1, target_component=1, t_usec=5_000_000, processing_us=0, source="magnetic", lat=lat,
-            lon=lon, h_ellipsoid=360.0, h_msl=320.0, sigma_h=12.0, sigma_v=3.0, healthy=False,
+            target_system=1,
+            target_component=1,
+            t_usec=5_000_000,
+            processing_us=0,
+            source="magnetic",
+            lat=lat,
+            lon=lon,
+            h_ellipsoid=360.0,
+            h_msl=320.0,
+            sigma_h=12.0,
+            sigma_v=3.0,
+            healthy=False,
         )
         got = collect(ap, lambda g: sum(isinstance(m, L.OutputMessage) for m in g) >= 2)
         outs = {m.kind: m for m in got if isinstance(m, L.OutputMessage)}
