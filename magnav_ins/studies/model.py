@@ -12,7 +12,8 @@ process and memoised (keyed by the scenario) so parallel workers do not rebuild 
 Every estimator and the free-inertial baseline (``aiding.fusion`` kind ``free_inertial``: the same INS with its
 covariance, no fixes) run through :class:`magnav_ins.pipeline.Pipeline` on the same corrupted IMU (or their own
 grade's), perturbed initial state and readings, with the vertical channel held at the initial height
-(``altitude_hold``; a barometric aid - an unaided vertical channel diverges within minutes).
+(``altitude_hold``; a barometric aid - an unaided vertical channel diverges within minutes; the graph fuser, which has
+no clamp, gets the held height with every fix as a height aid of ``GRAPH_HEIGHT_SIGMA_M``).
 """
 
 from __future__ import annotations
@@ -373,6 +374,15 @@ def output_dt(sc: Scenario, truth: NavTrajectory, max_samples: int) -> float:
     return max(1, int(np.ceil(span / max(max_samples - 1, 1) / dt_imu))) * dt_imu
 
 
+#: 1-sigma (m) of the held height given to the graph fuser with every fix (its vertical channel is otherwise free)
+GRAPH_HEIGHT_SIGMA_M = 1.0
+
+
+def _graph_height_aid(hold_m: float):
+    """The study's altitude hold for the graph fuser: ``t -> (hold_m, GRAPH_HEIGHT_SIGMA_M)`` (m), a height aid."""
+    return lambda _t: (hold_m, GRAPH_HEIGHT_SIGMA_M)
+
+
 def run_estimator(
     sc: Scenario,
     j: int | None,
@@ -422,8 +432,12 @@ def run_estimator(
         where = sc.where(f"estimator[{j}]")
         try:
             fopts = {k: v for k, v in est.fusion.items() if k != "kind"}
-            fopts.setdefault("altitude_hold", hold)
-            if est.smooth:
+            height_aid = None
+            if fkind == "graph":  # no strapdown clamp in the graph: the held height enters each fix's factor
+                height_aid = _graph_height_aid(hold)
+            else:
+                fopts.setdefault("altitude_hold", hold)
+            if est.smooth and fkind == "ukf":
                 fopts["keep_history"] = True
             fuser = make_fuser(fkind, prior, noise, **fopts)
             matcher = build_matcher(est.matcher)
@@ -436,6 +450,7 @@ def run_estimator(
                 window=est.window or default,
                 match_every=est.match_every or default,
                 rng=rng,
+                height_aid=height_aid,
             )
         except (MagnavError, TypeError) as exc:
             raise ConfigError(f"{where}: {exc}") from None
@@ -444,7 +459,13 @@ def run_estimator(
     except MagnavError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     nav, P = res.trajectory, np.asarray(res.P)
-    if j is not None and sc.estimators[j].smooth:  # offline: the RTS-smoothed track replaces the causal one
+    if j is not None and sc.estimators[j].smooth and fkind == "graph":
+        # offline: the batch LM solution re-integrated between its nodes, reported at t_out itself
+        try:
+            nav, P = fuser.smoothed_track(imu, t_out)
+        except MagnavError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+    elif j is not None and sc.estimators[j].smooth:  # offline: the RTS-smoothed track replaces the causal one
         nav, P_all = fuser.smooth(sc.estimators[j].smooth)
         pos = LAYOUT_15["pos"].start
         P = np.asarray(P_all)[:, pos : pos + 2, pos : pos + 2]

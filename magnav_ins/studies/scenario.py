@@ -173,8 +173,10 @@ class EstimatorConfig:
     ``aiding.fusion.make_fuser``) and the pipeline's ``window`` (readings per batch-matcher window) and
     ``match_every`` (readings between match attempts); both default to the matcher's ``batch`` when it has one
     (Wang's non-overlapping batches), else 1. ``smooth``: 0 reports the filter's causal (online) track; N >= 1
-    reports the UKF's Rauch-Tung-Striebel smoothed track instead (N passes: one closed-loop pass, then N - 1
-    relinearised ones; :meth:`magnav_ins.aiding.fusion.ukf.UkfFuser.smooth`), for offline studies.
+    reports a smoothed track instead, for offline studies: the UKF's Rauch-Tung-Striebel smoothed track (N passes:
+    one closed-loop pass, then N - 1 relinearised ones; :meth:`magnav_ins.aiding.fusion.ukf.UkfFuser.smooth`), or
+    for the graph fuser the batch Levenberg-Marquardt solution of its whole graph, whatever N >= 1
+    (:meth:`magnav_ins.aiding.fusion.graph.GraphFuser.smoothed_track`). Other fusers cannot smooth.
 
     ``matcher`` is None for a free-inertial estimator (``fusion.kind = "free_inertial"``) without fixes: with
     ``imu_grade`` it is the free-inertial drift of another IMU grade beside the baseline (Storms Fig. 2.1).
@@ -509,8 +511,12 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
         fusion = _spec(ctx, f"{p}.fusion", e["fusion"])
         _check_fusion(ctx, f"{p}.fusion", fusion)
         smooth = _int(ctx, f"{p}.smooth", e["smooth"], minimum=0) if "smooth" in e else 0
-        if smooth and fusion["kind"] != "ukf":
-            raise ctx.error(f"{p}.smooth", f"smoothing is offered by the ukf fuser only, not {fusion['kind']!r}")
+        if smooth and fusion["kind"] not in ("ukf", "graph"):
+            raise ctx.error(
+                f"{p}.smooth",
+                "smoothing is offered by the ukf (N Rauch-Tung-Striebel passes) and graph (batch Levenberg-Marquardt "
+                f"solution, any N >= 1) fusers only, not {fusion['kind']!r}",
+            )
         grade = _str(ctx, f"{p}.imu_grade", e["imu_grade"], IMU_GRADES) if "imu_grade" in e else None
         out.append(EstimatorConfig(name, matcher, fusion, win, every, smooth, grade))
     return tuple(out)

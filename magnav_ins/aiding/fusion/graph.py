@@ -407,6 +407,117 @@ class GraphFuser:
             np.array([n.q_nb for n in navs]),
         )
 
+    def smoothed_track(self, imu: ImuBatch, t_out: FloatArray) -> tuple[NavTrajectory, FloatArray]:
+        """Offline: the batch Levenberg-Marquardt solution of the whole graph (as ``node_trajectory(smoothed=True)``)
+        reported at the times ``t_out`` (s, increasing, within the first node and the last IMU time), with its
+        horizontal covariance ``cov_ne`` (n, 2, 2) north/east m^2.
+
+        Nodes are where :meth:`correct` received a fix (and where :meth:`add_node` was called), so in a study they
+        are seconds to minutes apart. Between two nodes the track is re-integrated from the smoothed state and bias
+        of the earlier node with the IMU samples ``imu`` (those fed to :meth:`propagate`, body FRD, compensated to L
+        as in the online graph) and the mismatch with the smoothed later node (position and velocity in L) is spread
+        linearly in time, so the track follows the manoeuvres the IMU saw and passes through every node; attitude is
+        the re-integrated one. If IMU time remains after the last node, a closing node is added at the last IMU
+        time first (:meth:`add_node`; call this once the run is over).
+
+        Covariance: ``gtsam.Marginals`` of the batch solution at every node (the pose's translation block, body
+        axes, rotated to NED; iSAM2's marginals, which are smoothed too, if Cholesky finds the system indeterminate),
+        linearly interpolated in time between nodes: between sparse nodes this understates the smoother's
+        uncertainty midway, where it is largest."""
+        t_out = np.asarray(t_out, dtype=float).reshape(-1)
+        if self._t > self._node.t + _TIME_TOL:
+            self.add_node(self._t)
+        times = np.asarray(self._node_times, dtype=float)
+        if len(t_out) and (np.any(np.diff(t_out) < 0) or t_out[0] < times[0] - 1e-6 or t_out[-1] > times[-1] + 1e-6):
+            raise InputError(
+                f"GraphFuser.smoothed_track: output times must increase within [{times[0]!r}, {times[-1]!r}] s"
+            )
+        values = self._isam.calculateEstimate()
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setLinearSolverType("MULTIFRONTAL_QR" if self._factorization == "QR" else "MULTIFRONTAL_CHOLESKY")
+        values = gtsam.LevenbergMarquardtOptimizer(self._graph, values, lm).optimize()
+        try:  # gtsam's Python Marginals factorises by Cholesky only
+            marginals = gtsam.Marginals(self._graph, values)
+        except RuntimeError:  # indeterminate under Cholesky: iSAM2's own (QR) marginals at its linearisation point
+            marginals = self._isam
+        nodes = [
+            _Node(float(t), gtsam.NavState(values.atPose3(X(k)), values.atVector(V(k))), values.atConstantBias(B(k)))
+            for k, t in enumerate(times)
+        ]
+        cov_nodes = np.empty((len(nodes), 2, 2))
+        for k, node in enumerate(nodes):
+            C_nb = self._J_gtsam_to_layout(node.state)[0:3, 3:6]
+            S_t = np.asarray(marginals.marginalCovariance(X(k)))[3:6, 3:6]  # translation, body axes
+            cov_nodes[k] = symmetrise(C_nb @ S_t @ C_nb.T)[0:2, 0:2]
+        cov = np.stack([np.interp(t_out, times, cov_nodes[:, a, b]) for a in range(2) for b in range(2)], -1).reshape(
+            -1, 2, 2
+        )
+
+        t_imu = np.asarray(imu.t, dtype=float)
+        starts = np.r_[-np.inf, t_imu[:-1]]
+        pos = np.empty((len(t_out), 3))
+        vel = np.empty((len(t_out), 3))
+        rot: list[FloatArray] = [np.eye(3)] * len(t_out)
+        for k in range(len(nodes) - 1):
+            a, b = nodes[k].t, nodes[k + 1].t
+            q = np.flatnonzero(
+                (t_out >= a - _TIME_TOL) & (t_out <= b + _TIME_TOL)
+                if k == 0
+                else (t_out > a + _TIME_TOL) & (t_out <= b + _TIME_TOL)
+            )
+            idx = np.flatnonzero((t_imu > a + _TIME_TOL) & (starts < b - _TIME_TOL))
+            ends = np.minimum(t_imu[idx], b)
+            if len(idx) == 0 or ends[-1] < b - 1e-6:
+                raise InputError(f"GraphFuser.smoothed_track: the IMU samples do not cover ({a!r}, {b!r}] s")
+            # the segment ends bracketing each wanted time (and the node b itself) are predicted
+            seg = np.searchsorted(ends, t_out[q] - _TIME_TOL)
+            need = set(seg.tolist()) | set((seg - 1).tolist()) | {len(idx) - 1}
+            pim = gtsam.PreintegratedCombinedMeasurements(self._params, nodes[k].bias)
+            comp = {"t": -np.inf, "df_b": np.zeros(3), "dw_b": np.zeros(3)}
+            pred: dict[int, gtsam.NavState] = {-1: nodes[k].state}
+            t_prev = a
+            for j, i in enumerate(idx):
+                self._integrate(
+                    pim, nodes[k], float(ends[j]), float(ends[j] - t_prev), imu.gyro_b[i], imu.accel_b[i], comp
+                )
+                t_prev = float(ends[j])
+                if j in need:
+                    pred[j] = pim.predict(nodes[k].state, nodes[k].bias)
+            end = pred[len(idx) - 1]
+            dp = nodes[k + 1].state.position() - end.position()
+            dv = nodes[k + 1].state.velocity() - end.velocity()
+            seg_t = np.r_[a, ends]
+            for m, jj in zip(q, seg, strict=True):
+                t = float(t_out[m])
+                j1 = min(int(jj), len(idx) - 1)
+                j0 = j1 - 1
+                t0, t1 = seg_t[j0 + 1], seg_t[j1 + 1]
+                w = 0.0 if t1 <= t0 else min(max((t - t0) / (t1 - t0), 0.0), 1.0)
+                s0, s1 = pred[j0], pred[j1]
+                frac = (t - a) / (b - a)
+                pos[m] = (1 - w) * s0.position() + w * s1.position() + frac * dp
+                vel[m] = (1 - w) * s0.velocity() + w * s1.velocity() + frac * dv
+                rot[m] = (s1 if w >= 0.5 else s0).attitude().matrix()
+        if len(nodes) == 1:
+            for m in range(len(t_out)):
+                pos[m], vel[m], rot[m] = (
+                    nodes[0].state.position(),
+                    nodes[0].state.velocity(),
+                    nodes[0].state.attitude().matrix(),
+                )
+        navs = [
+            self._from_gtsam(float(t), gtsam.NavState(gtsam.Rot3(rot[m]), pos[m], vel[m])) for m, t in enumerate(t_out)
+        ]
+        traj = NavTrajectory(
+            t_out.copy(),
+            np.array([n.lat for n in navs]),
+            np.array([n.lon for n in navs]),
+            np.array([n.h for n in navs]),
+            np.array([n.v_n for n in navs]).reshape(-1, 3),
+            np.array([n.q_nb for n in navs]).reshape(-1, 4),
+        )
+        return traj, cov
+
 
 # ------------------------------------------------------------------------------------------------ peer run
 def kitti_example_peer(gps_skip: int = 10, factorization: str = "QR") -> dict[str, np.ndarray]:
