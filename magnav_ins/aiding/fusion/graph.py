@@ -61,7 +61,8 @@ class _Node:
 
 
 class GraphFuser:
-    """GTSAM factor-graph fuser (iSAM2 online; :meth:`smooth` runs batch LM over the whole graph).
+    """GTSAM factor-graph fuser (iSAM2 online; :meth:`node_trajectory` with ``smoothed=True`` and
+    :meth:`smoothed_track` give the batch LM solution over the whole graph).
 
     ``init``: initial state and its LAYOUT_15 covariance; ``noise``: IMU noise (continuous-time densities and bias
     sigmas); ``gate_probability``: chi-square gate on the 2-dof north/east NIS (None: no gate); ``huber_k``: Huber threshold in
