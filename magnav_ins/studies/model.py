@@ -374,6 +374,9 @@ def output_dt(sc: Scenario, truth: NavTrajectory, max_samples: int) -> float:
     return max(1, int(np.ceil(span / max(max_samples - 1, 1) / dt_imu))) * dt_imu
 
 
+#: rotation (rad) preintegrated by the graph fuser before a keyframe node is added (studies only)
+GRAPH_KEYFRAME_RAD = 0.1
+
 #: 1-sigma (m) of the held height given to the graph fuser with every fix (its vertical channel is otherwise free)
 GRAPH_HEIGHT_SIGMA_M = 1.0
 
@@ -435,6 +438,9 @@ def run_estimator(
             height_aid = None
             if fkind == "graph":  # no strapdown clamp in the graph: the held height enters each fix's factor
                 height_aid = _graph_height_aid(hold)
+                # keyframes through turns: one preintegrated rotation of a 180-degree turn is ~1 mrad off in the
+                # gtsam wheel (GraphFuser docstring); offline, no fix arrives late, so keyframes cost nothing else
+                fopts.setdefault("max_preintegration_rad", GRAPH_KEYFRAME_RAD)
             else:
                 fopts.setdefault("altitude_hold", hold)
             if est.smooth and fkind == "ukf":

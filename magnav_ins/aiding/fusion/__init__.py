@@ -30,6 +30,7 @@ FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
         "gravity_update_s",
         "integration_sigma",
         "reset_after",
+        "max_preintegration_rad",
     ),
     "free_inertial": ("gate_probability", *_CORE, *EXTRA_STATE_OPTIONS),
 }
