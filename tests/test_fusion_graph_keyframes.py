@@ -98,3 +98,23 @@ def test_bad_keyframe_angle_is_a_config_error(bad: float) -> None:
     _, _, init, noise = _flight()
     with pytest.raises(ConfigError, match="max_preintegration_rad"):
         make_fuser("graph", init, noise, max_preintegration_rad=bad)
+
+
+def test_held_height_is_the_default_height_of_a_fix() -> None:
+    """``altitude_hold`` puts its height on a fix that brings none: the same solution as passing it explicitly."""
+    tr, imu, init, noise = _flight()
+    k = int(np.searchsorted(imu.t, 30.0))
+    dlat, dlon = meters_to_latlon(3.0, -2.0, tr.lat[k])
+    fix = Fix(float(imu.t[k]), float(tr.lat[k] + dlat), float(tr.lon[k] + dlon), np.diag([4.0, 4.0]), source="test")
+    held = make_fuser("graph", init, noise, altitude_hold=480.0, altitude_hold_sigma_m=5.0)
+    explicit = make_fuser("graph", init, noise)
+    for f in (held, explicit):
+        f.propagate(imu.slice(1, k + 1))
+    held.correct(fix)
+    explicit.correct(fix, height_m=480.0, height_sigma_m=5.0)
+    a, b = held.estimate().nav, explicit.estimate().nav
+    assert abs(a.h - b.h) < 1e-6 and abs(a.h - tr.h[k]) > 0.3  # the held height did pull (truth 500 m, 0.6 m)
+    with pytest.raises(ConfigError, match="altitude_hold_sigma_m"):
+        make_fuser("graph", init, noise, altitude_hold=480.0, altitude_hold_sigma_m=0.0)
+    with pytest.raises(ConfigError, match="altitude_hold"):
+        make_fuser("graph", init, noise, altitude_hold=float("nan"))

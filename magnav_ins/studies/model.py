@@ -13,7 +13,7 @@ Every estimator and the free-inertial baseline (``aiding.fusion`` kind ``free_in
 covariance, no fixes) run through :class:`magnav_ins.pipeline.Pipeline` on the same corrupted IMU (or their own
 grade's), perturbed initial state and readings, with the vertical channel held at the initial height
 (``altitude_hold``; a barometric aid - an unaided vertical channel diverges within minutes; the graph fuser, which has
-no clamp, gets the held height with every fix as a loose height aid of ``GRAPH_HEIGHT_SIGMA_M``; keyframes every
+no clamp, takes the held height with every fix as a loose pseudo-measurement; keyframes every
 ``GRAPH_KEYFRAME_RAD`` of rotation).
 """
 
@@ -378,17 +378,6 @@ def output_dt(sc: Scenario, truth: NavTrajectory, max_samples: int) -> float:
 #: rotation (rad) preintegrated by the graph fuser before a keyframe node is added (studies only)
 GRAPH_KEYFRAME_RAD = 0.1
 
-#: 1-sigma (m) of the held height given to the graph fuser with every fix (its vertical channel is otherwise free).
-#: The held height is a pseudo-measurement: a draped survey flight departs from it by tens of metres (Osborne tie
-#: lines: 372-494 m against 462 m held), and with 1 m the graph bent its horizontal solution to honour it (error-free
-#: IMU, truth fixes of 80 m every 20 s on the eight tie lines: 176 m RMS, NIS 6.3; with 50 m: 43 m, NIS 2.0; UKF 35 m)
-GRAPH_HEIGHT_SIGMA_M = 50.0
-
-
-def _graph_height_aid(hold_m: float):
-    """The study's altitude hold for the graph fuser: ``t -> (hold_m, GRAPH_HEIGHT_SIGMA_M)`` (m), a height aid."""
-    return lambda _t: (hold_m, GRAPH_HEIGHT_SIGMA_M)
-
 
 def run_estimator(
     sc: Scenario,
@@ -439,14 +428,9 @@ def run_estimator(
         where = sc.where(f"estimator[{j}]")
         try:
             fopts = {k: v for k, v in est.fusion.items() if k != "kind"}
-            height_aid = None
-            if fkind == "graph":  # no strapdown clamp in the graph: the held height enters each fix's factor
-                height_aid = _graph_height_aid(hold)
-                # keyframes through turns: one preintegrated rotation of a 180-degree turn is ~1 mrad off in the
-                # gtsam wheel (GraphFuser docstring); offline, no fix arrives late, so keyframes cost nothing else
+            fopts.setdefault("altitude_hold", hold)  # the graph takes it as a loose height pseudo-measurement
+            if fkind == "graph":  # keyframes through turns (GraphFuser docstring); offline no fix arrives late
                 fopts.setdefault("max_preintegration_rad", GRAPH_KEYFRAME_RAD)
-            else:
-                fopts.setdefault("altitude_hold", hold)
             if est.smooth and fkind == "ukf":
                 fopts["keep_history"] = True
             fuser = make_fuser(fkind, prior, noise, **fopts)
@@ -460,7 +444,6 @@ def run_estimator(
                 window=est.window or default,
                 match_every=est.match_every or default,
                 rng=rng,
-                height_aid=height_aid,
             )
         except (MagnavError, TypeError) as exc:
             raise ConfigError(f"{where}: {exc}") from None

@@ -31,6 +31,8 @@ FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
         "integration_sigma",
         "reset_after",
         "max_preintegration_rad",
+        "altitude_hold",
+        "altitude_hold_sigma_m",
     ),
     "free_inertial": ("gate_probability", *_CORE, *EXTRA_STATE_OPTIONS),
 }
