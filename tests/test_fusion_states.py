@@ -326,7 +326,8 @@ def test_unexcited_extra_states_leave_the_15_state_filter_unchanged() -> None:
 
     assert np.abs(e17 - e15).max() < 1e-9  # measured 0
     assert corr_diff(c17) < 1e-9  # measured 5e-15
-    assert np.abs(f17.map_bias).max() < 1e-20 and np.allclose(c17[-1][15:17, 15:17], 900.0 * np.eye(2))
+    assert np.abs(f17.map_bias).max() < 1e-9  # round-off only (1e-15 m with numpy 2.4)
+    assert np.allclose(c17[-1][15:17, 15:17], 900.0 * np.eye(2))
     assert np.abs(c17[:, :15, 15:]).max() < 1e-20  # never correlated with the navigation states
     tiny = dataclasses.replace(noise, accel_scale_sigma=1e-9, gyro_scale_sigma=1e-9)
     f21, e21, c21 = fly(init, imu, fixes, tiny, traj, scale_factors=True)

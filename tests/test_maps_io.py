@@ -237,3 +237,26 @@ def test_shipped_osborne_map_predicts_the_independent_tie_lines():
     rms = np.sqrt(sum(v["rms"] ** 2 * v["n"] for v in r.values()) / n)
     assert rms < 40.0
     assert n > 0.98 * len(s)
+
+
+def test_error_layer_roundtrip_and_interpolation(tmp_path, rng):
+    """The map error layer survives write/read, interpolates bilinearly between nodes and is NaN off the map."""
+    m = _geo(rng)
+    ny, nx = m.shape
+    err = np.add.outer(np.arange(ny), np.arange(nx)).astype(float)  # linear in both axes: bilinear is exact
+    em = m.with_error_layer(err, 750.0, "test ramp")
+    assert em.has_error_layer and not m.has_error_layer
+    write_map(em, tmp_path / "e.nc")
+    back = read_map(tmp_path / "e.nc")
+    _same(em, back)
+    np.testing.assert_array_equal(back.error_sigma, err)
+    assert back.error_correlation_m == 750.0 and back.error_source == "test ramp"
+    lat, lon = m.axes
+    # halfway between nodes (2, 5) and (3, 6): 2.5 + 5.5
+    q = back.error_sigma_at(0.5 * (lat[2] + lat[3]), 0.5 * (lon[5] + lon[6]))
+    assert abs(float(q) - 8.0) < 1e-9
+    assert np.isnan(back.error_sigma_at(lat[0] - 0.1, lon[0]))
+    assert np.all(np.isnan(m.error_sigma_at(lat[:3], lon[:3])))
+    with pytest.raises(MapError, match="error_correlation_m"):
+        m.with_error_layer(1.0, None)
+    assert not em.with_error_layer(None).has_error_layer

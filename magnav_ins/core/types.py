@@ -147,13 +147,24 @@ LAYOUT_15 = StateLayout(
 )
 
 
+#: Default integrity risk of a horizontal protection level: the probability, per output epoch, that the true
+#: horizontal error exceeds ``NavEstimate.hpl_m`` without the fault detection having flagged it.
+DEFAULT_INTEGRITY_RISK = 1e-3
+
+
 @dataclass(frozen=True)
 class NavEstimate:
-    """A navigation solution with its error covariance ``P`` laid out as ``layout`` says."""
+    """A navigation solution with its error covariance ``P`` laid out as ``layout`` says.
+
+    ``hpl_m`` is the horizontal protection level (m): a radius that the true horizontal error exceeds with
+    probability at most ``integrity_risk`` per epoch; NaN when the fuser does not provide one.
+    """
 
     nav: NavState
     P: FloatArray
     layout: StateLayout = LAYOUT_15
+    hpl_m: float = float("nan")
+    integrity_risk: float = DEFAULT_INTEGRITY_RISK
 
     @property
     def cov_ne(self) -> FloatArray:

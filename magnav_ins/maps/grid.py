@@ -18,6 +18,16 @@ A grid holds the field on one surface: a constant ellipsoidal height ``altitude_
 for interface uniformity and ignored, unless the map was built with ``altitude_tolerance_m`` set, in which case a
 query whose ``h`` differs from the map surface by more than that tolerance raises :class:`MapError`.
 To use a map at another altitude, upward-continue it first (``magnav_ins.maps.continuation``).
+
+Map error layer
+---------------
+A map may carry its own prediction error (DESIGN "Integrity"): ``error_sigma``, the 1-sigma difference between the
+map and the true field at each node (same unit, same nodes; larger between survey lines and far from data), and
+``error_correlation_m``, the correlation length (m) of that error: two points closer than it see nearly the same
+map error, so readings inside one correlation length are not independent evidence against the map.
+:meth:`GridMap.error_sigma_at` interpolates the layer; :attr:`GridMap.has_error_layer` says whether there is one
+(a map from elsewhere may not have it; the matchers then use their own stated default). Gridding a survey
+(:mod:`magnav_ins.maps.build`) estimates the layer by spatial cross-validation; ``error_source`` says how it was made.
 """
 
 from __future__ import annotations
@@ -83,6 +93,13 @@ class GridMap:
         Free-text CRS label, kept for provenance.
     altitude_tolerance_m
         If set, queries with ``h`` farther than this from the map surface raise :class:`MapError`.
+    error_sigma
+        Optional map error layer: 1-sigma prediction error in ``kind``'s unit, a float (uniform) or (ny, nx);
+        for vector maps one sigma per node applies to each component. NaN nodes take the layer's largest value.
+    error_correlation_m
+        Correlation length (m) of the map error; required with ``error_sigma``.
+    error_source
+        Free text saying how the error layer was obtained (e.g. "block k-fold cross-validation, 5 folds").
     """
 
     def __init__(
@@ -100,6 +117,9 @@ class GridMap:
         name: str = "",
         metadata: Mapping[str, Any] | None = None,
         altitude_tolerance_m: float | None = None,
+        error_sigma: float | ArrayLike | None = None,
+        error_correlation_m: float | None = None,
+        error_source: str = "",
     ) -> None:
         try:
             self.kind = FieldKind(kind)
@@ -161,6 +181,32 @@ class GridMap:
             self.origin = (0.5 * (self._y[0] + self._y[-1]), 0.5 * (self._x[0] + self._x[-1]), h_ref)
         self._h_ref = h_ref
         self._period = _TWO_PI if frame == "geodetic" else 0.0
+        self._err2: FloatArray | None = None
+        self.error_correlation_m: float | None = None
+        self.error_source = ""
+        if error_sigma is not None:
+            self._set_error_layer(error_sigma, error_correlation_m, error_source)
+        elif error_correlation_m is not None:
+            raise MapError(f"GridMap '{name}': error_correlation_m given without error_sigma")
+
+    def _set_error_layer(self, sigma: float | ArrayLike, correlation_m: float | None, source: str) -> None:
+        ny, nx = self.shape
+        e = np.asarray(sigma, dtype=float)
+        if e.ndim == 0:
+            e = np.full((ny, nx), float(e))
+        if e.shape != (ny, nx):
+            raise MapError(f"GridMap '{self.name}': error_sigma has shape {e.shape}, expected {(ny, nx)} or a scalar")
+        finite = e[np.isfinite(e)]
+        if finite.size == 0 or np.any(finite < 0):
+            raise MapError(f"GridMap '{self.name}': error_sigma must be >= 0 with at least one finite node")
+        if correlation_m is None or not np.isfinite(correlation_m) or correlation_m <= 0:
+            raise MapError(
+                f"GridMap '{self.name}': an error layer needs error_correlation_m > 0 (m), got {correlation_m!r}"
+            )
+        e = np.where(np.isfinite(e), e, float(finite.max()))
+        self._err2 = np.ascontiguousarray(e)
+        self.error_correlation_m = float(correlation_m)
+        self.error_source = str(source)
 
     # ------------------------------------------------------------------ description
     @property
@@ -237,12 +283,68 @@ class GridMap:
         r_n, r_e = radii_of_curvature(lat_c)
         return (float(self._dy * (r_n + self._h_ref)), float(self._dx * (r_e + self._h_ref) * np.cos(lat_c)))
 
+    @property
+    def has_error_layer(self) -> bool:
+        """True when the map carries a prediction-error layer (module docstring, "Map error layer")."""
+        return self._err2 is not None
+
+    @property
+    def error_sigma(self) -> FloatArray | None:
+        """The error layer (ny, nx), 1-sigma in the map's unit (a read-only view), or None."""
+        if self._err2 is None:
+            return None
+        v = self._err2.view()
+        v.flags.writeable = False
+        return v
+
+    def error_sigma_at(self, lat: ArrayLike, lon: ArrayLike) -> FloatArray:
+        """Map error 1-sigma (map unit) at ``(lat, lon)`` rad, bilinear between nodes, shape ``lat.shape``.
+
+        NaN off the grid, and everywhere when the map has no error layer (:attr:`has_error_layer`)."""
+        yq, xq, shape = self._query_axes(lat, lon)
+        if self._err2 is None:
+            out = np.full(yq.shape, np.nan)
+        else:
+            out = interp.bilinear_scalar(self._err2, self._y0, self._dy, self._x0, self._dx, yq, xq, self._period)
+        return out.reshape(shape) if shape else out.reshape(())
+
+    def error_sigma_ne(self, northing: ArrayLike, easting: ArrayLike) -> FloatArray:
+        """As :meth:`error_sigma_at`, at local-plane (northing, easting) m about :attr:`origin`."""
+        n, e = np.broadcast_arrays(np.asarray(northing, dtype=float), np.asarray(easting, dtype=float))
+        shape = n.shape
+        if self._err2 is None:
+            return np.full(shape, np.nan)
+        if self.frame == "local":
+            yq, xq = np.ascontiguousarray(n.ravel()), np.ascontiguousarray(e.ravel())
+        else:
+            yq, xq = self.from_local(n.ravel(), e.ravel())
+        out = interp.bilinear_scalar(self._err2, self._y0, self._dy, self._x0, self._dx, yq, xq, self._period)
+        return out.reshape(shape)
+
+    def with_error_layer(
+        self, error_sigma: float | ArrayLike | None, correlation_m: float | None = None, source: str = ""
+    ) -> GridMap:
+        """A copy of this map carrying another error layer (``None`` removes it)."""
+        out = self.with_values(self.values)
+        out._err2 = None
+        out.error_correlation_m = None
+        out.error_source = ""
+        if error_sigma is not None:
+            out._set_error_layer(error_sigma, correlation_m, source)
+        return out
+
     def __repr__(self) -> str:
         dn, de = self.spacing_m
         alt = f"{self.altitude_m:.1f} m" if np.ndim(self.altitude_m) == 0 else "draped"
         return (
             f"GridMap(name={self.name!r}, kind={self.kind.value}, frame={self.frame}, shape={self.shape}, "
-            f"spacing~({dn:.1f} m, {de:.1f} m), altitude={alt})"
+            f"spacing~({dn:.1f} m, {de:.1f} m), altitude={alt}"
+            + (
+                f", error layer median {float(np.median(self._err2)):.3g} {self.unit}, "
+                f"correlation {self.error_correlation_m:.0f} m)"
+                if self._err2 is not None
+                else ")"
+            )
         )
 
     # ------------------------------------------------------------------ frame helpers
@@ -381,7 +483,10 @@ class GridMap:
     def with_values(
         self, values: ArrayLike, *, name: str | None = None, kind: FieldKind | str | None = None
     ) -> GridMap:
-        """A copy of this map (same axes, frame, altitude, metadata) holding other values."""
+        """A copy of this map (same axes, frame, altitude, metadata, error layer) holding other values.
+
+        The error layer is kept as it is: if the new values are not the same field (a derived map), remove or
+        replace it with :meth:`with_error_layer`."""
         return GridMap(
             self._y,
             self._x,
@@ -395,6 +500,9 @@ class GridMap:
             name=self.name if name is None else name,
             metadata=self.metadata,
             altitude_tolerance_m=self.altitude_tolerance_m,
+            error_sigma=self._err2,
+            error_correlation_m=self.error_correlation_m,
+            error_source=self.error_source,
         )
 
     def node_latlon(self) -> tuple[FloatArray, FloatArray]:

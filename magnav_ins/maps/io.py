@@ -11,6 +11,8 @@ NetCDF layout written by :func:`write_map` (and required by :func:`read_map`)
 * Global attributes ``Conventions = "CF-1.8"``, ``magnav_frame`` (``geodetic`` / ``local``), ``geodetic_datum``
   (``WGS84``), ``altitude_m`` (ellipsoidal height of a flat map surface, m) - or, for draped maps, a data variable
   ``altitude`` (m) on the same grid - and optionally ``crs``, ``title`` (the map's name), ``magnav_metadata`` (JSON).
+* Optionally the map error layer: a data variable ``map_error_sigma`` on the same (y, x) grid (1-sigma, the map's
+  unit) with attributes ``units``, ``correlation_length_m`` (the error's correlation length) and ``source``.
 
 A file missing the kind, the unit, the datum or the altitude is refused with a :class:`MapError` that names the
 attribute and how to supply it (edit the file's attributes, or pass ``kind=`` / ``altitude_m=`` / ``datum=`` to
@@ -95,6 +97,17 @@ def write_map(fmap: GridMap, path: str | Path, *, dtype: str = "float64", compre
             np.asarray(fmap.altitude_m, dtype=dtype),
             {"units": "m", "long_name": "ellipsoidal height of the map surface (WGS84)"},
         )
+    if fmap.has_error_layer:
+        data_vars["map_error_sigma"] = (
+            dims,
+            np.asarray(fmap.error_sigma, dtype=dtype),
+            {
+                "units": kind.unit,
+                "long_name": "1-sigma prediction error of the map",
+                "correlation_length_m": float(fmap.error_correlation_m),  # type: ignore[arg-type]
+                "source": fmap.error_source,
+            },
+        )
     # the tangent-plane origin (a geodetic map's default is its centre); always written so reads are lossless
     attrs["origin_lat_deg"] = fmap.origin[0] * RAD_TO_DEG
     attrs["origin_lon_deg"] = fmap.origin[1] * RAD_TO_DEG
@@ -140,7 +153,7 @@ def read_map(
         ds = xr.load_dataset(path)
     except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file for the user
         raise MapError(f"{path}: cannot be read as NetCDF ({type(exc).__name__}: {exc})") from None
-    names = [v for v in ds.data_vars if v not in ("altitude", "crs")]
+    names = [v for v in ds.data_vars if v not in ("altitude", "crs", "map_error_sigma")]
     if variable is not None:
         if variable not in ds.data_vars:
             raise MapError(f"{path}: no variable {variable!r}; it holds {sorted(map(str, ds.data_vars))}")
@@ -228,6 +241,16 @@ def read_map(
         raise MapError(f"{where_}: dimensions {dims} do not fit kind {the_kind.value} (expected {order})")
     da = da.transpose(*order)
     alt_da = ds["altitude"].transpose(ydim, xdim) if "altitude" in ds.data_vars else None
+    err_da = ds["map_error_sigma"].transpose(ydim, xdim) if "map_error_sigma" in ds.data_vars else None
+    err = np.asarray(err_da.values, dtype=float) if err_da is not None else None
+    err_corr = None
+    if err_da is not None:
+        eu = str(err_da.attrs.get("units", "")).strip()
+        if eu.lower() != the_kind.unit.lower():
+            raise MapError(f"{path} variable 'map_error_sigma': units={eu!r}, expected {the_kind.unit!r}")
+        err_corr = err_da.attrs.get("correlation_length_m")
+        if err_corr is None:
+            raise MapError(f"{path} variable 'map_error_sigma': attribute 'correlation_length_m' (m) is missing")
     y = np.asarray(ds[ydim].values, dtype=float)
     x = np.asarray(ds[xdim].values, dtype=float)
     vals = np.asarray(da.values, dtype=float)
@@ -236,9 +259,11 @@ def read_map(
     if y.size > 1 and y[1] < y[0]:
         y, vals = y[::-1], vals[::-1]
         alt = alt[::-1] if np.ndim(alt) else alt
+        err = err[::-1] if err is not None else None
     if x.size > 1 and x[1] < x[0]:
         x, vals = x[::-1], vals[:, ::-1]
         alt = alt[:, ::-1] if np.ndim(alt) else alt
+        err = err[:, ::-1] if err is not None else None
     origin = None
     if "origin_lat_deg" in ds.attrs:
         origin = (
@@ -269,6 +294,9 @@ def read_map(
             crs=ds.attrs.get("crs"),
             name=str(ds.attrs.get("title", "")) or path.stem,
             metadata=meta,
+            error_sigma=err,
+            error_correlation_m=float(err_corr) if err_corr is not None else None,
+            error_source=str(err_da.attrs.get("source", "")) if err_da is not None else "",
         )
     except MapError as exc:
         raise MapError(f"{path}: {exc}") from None
