@@ -24,7 +24,7 @@ from typing import TextIO
 import numpy as np
 import pandas as pd
 
-from ..core.atomic import atomic_path
+from ..core.atomic import atomic_path, check_output_file
 from ..core.errors import InputError, where
 from ..core.frames import euler_from_q_nb, q_nb_from_euler
 from ..core.types import ImuBatch, NavState, NavTrajectory
@@ -65,6 +65,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="M",
         help="hold the ellipsoidal height at M metres (the free vertical channel is unstable over hours)",
     )
+    p.add_argument(
+        "--allow-implausible",
+        action="store_true",
+        help="integrate rates or specific forces outside any IMU's range (refused by default: a unit mistake)",
+    )
     p.add_argument("--chunk-rows", type=int, default=50_000, help=argparse.SUPPRESS)
     p.set_defaults(handler=run)
 
@@ -75,6 +80,8 @@ def read_init(path: Path) -> NavState:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise InputError(f"{path}: cannot read the initial state ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a text file (byte {exc.start} is not UTF-8); expected JSON") from None
     try:
         d = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -152,6 +159,31 @@ def _chunks(path: Path, chunk_rows: int):
         raise InputError(f"{path}: malformed CSV near data row {row0}+ ({exc})") from None
 
 
+def _check_plausible(path: Path, row0: int, gyro: np.ndarray, accel: np.ndarray, first: bool) -> None:
+    """Refuse rates and specific forces no IMU measures (:mod:`magnav_ins.core.plausibility`), naming the row and
+    column; on the first chunk also a median |specific force| that says the accelerometers are in g."""
+    from ..core import plausibility as pl
+
+    override = "; --allow-implausible integrates it anyway"
+    for name, data, limit, unit in (
+        ("gyro", np.abs(gyro), pl.MAX_GYRO_RAD_S, "rad/s (4000 deg/s, the largest gyro full scale): rates in rad/s?"),
+        ("accel", np.abs(accel), pl.MAX_ACCEL_MPS2, "m/s^2 (100 g): specific force in m/s^2?"),
+    ):
+        bad = np.argwhere(data > limit)
+        if len(bad):
+            k, axis = (int(x) for x in bad[0])
+            col = f"{name}_{'xyz'[axis]}"
+            raise InputError(
+                f"{where(path, row=row0 + k, key=col)}{data[k, axis]:.6g} is above {limit:g} {unit}{override}"
+            )
+    f = np.linalg.norm(accel, axis=1)
+    if first and len(f) >= 10 and np.median(f) < pl.MIN_MEDIAN_ACCEL_MPS2:
+        raise InputError(
+            f"{path} rows {row0}-{row0 + len(f) - 1}: median |specific force| {np.median(f):.3g} m/s^2; in g? expected "
+            f"m/s^2 (about 9.8 unless in free fall){override}"
+        )
+
+
 def _write(fh: TextIO, traj: NavTrajectory) -> None:
     roll, pitch, yaw = euler_from_q_nb(traj.q_nb)
     table = np.column_stack(
@@ -168,12 +200,16 @@ def integrate_file(
     max_gap: float | None = None,
     altitude_hold: float | None = None,
     chunk_rows: int = 50_000,
+    allow_implausible: bool = False,
 ) -> int:
     """Mechanise ``imu_path`` from ``init_path`` into ``out_path`` (see the module docstring). Returns the number of
     trajectory rows written. Raises :class:`InputError` naming the file, row and column on bad input."""
     imu_path, init_path, out_path = Path(imu_path), Path(init_path), Path(out_path)
+    check_output_file(out_path)
     if max_gap is not None and not (math.isfinite(max_gap) and max_gap > 0):
         raise InputError(f"--max-gap: expected a positive number of seconds, got {max_gap}")
+    if altitude_hold is not None and not (math.isfinite(altitude_hold) and -11000.0 <= altitude_hold <= 1e5):
+        raise InputError(f"--altitude-hold: expected an ellipsoidal height in [-11000, 100000] m, got {altitude_hold}")
     init = read_init(init_path)
     _check_header(imu_path)
     stepper: StrapdownStepper | None = None
@@ -187,6 +223,8 @@ def integrate_file(
             t = df["t"].to_numpy(dtype=float)
             gyro = df[["gyro_x", "gyro_y", "gyro_z"]].to_numpy(dtype=float)
             accel = df[["accel_x", "accel_y", "accel_z"]].to_numpy(dtype=float)
+            if not allow_implausible:
+                _check_plausible(imu_path, row0, gyro, accel, stepper is None)
             t_all = t if stepper is None else np.concatenate(([t_last], t))
             dt = np.diff(t_all)
             bad = np.flatnonzero(~(dt > 0.0))
@@ -243,6 +281,7 @@ def run(args: argparse.Namespace) -> int:
         max_gap=args.max_gap,
         altitude_hold=args.altitude_hold,
         chunk_rows=args.chunk_rows,
+        allow_implausible=args.allow_implausible,
     )
     print(f"wrote {rows} states to {args.out}")
     return 0

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.atomic import atomic_path
-from ..core.errors import InputError
+from ..core.atomic import atomic_path, check_output_file
+from ..core.errors import InputError, warn
 from ..core.types import FieldKind
 from ..core.units import DEG_TO_RAD, RAD_TO_DEG
 from . import map_variability
@@ -52,9 +52,10 @@ def _map_options(p: argparse.ArgumentParser, *, survey: bool) -> None:
 
 
 def _load(args: argparse.Namespace, spec: str) -> Any:
+    from ..core.plausibility import field_values_problem
     from ..maps.io import load_map
 
-    return load_map(
+    fmap = load_map(
         spec,
         grid_spacing_m=args.spacing,
         kind=args.kind,
@@ -62,6 +63,10 @@ def _load(args: argparse.Namespace, spec: str) -> Any:
         datum=args.datum,
         geoid_undulation_m=getattr(args, "geoid_m", None),
     )
+    problem = field_values_problem(fmap.values, fmap.kind) if hasattr(fmap, "values") else None
+    if problem:  # inspection goes on; navigating on it ('run') is refused
+        warn(f"{spec}: implausible for {fmap.kind.value}: {problem}")
+    return fmap
 
 
 # ------------------------------------------------------------------------------------------------ info
@@ -177,7 +182,7 @@ def run_grid(args: argparse.Namespace) -> int:
 
     exclude = _parse_ids(args.exclude_lines)
     src = Path(args.survey)
-    out = Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc")
+    out = check_output_file(Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc"))
     t0 = time.perf_counter()
     survey = read_survey(src, kind=args.kind, geoid_undulation_m=args.geoid_m, altitude_m=args.altitude_m)
     ties: list[int] = []
@@ -235,6 +240,7 @@ def read_points(path: str | Path) -> Any:
 
 
 def run_sample(args: argparse.Namespace) -> int:
+    check_output_file(args.out)
     fmap = _load(args, args.map)
     df = read_points(args.points)
     lat = df["lat_deg"].to_numpy(dtype=float) * DEG_TO_RAD

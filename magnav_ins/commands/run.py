@@ -11,6 +11,7 @@ import argparse
 import dataclasses
 from pathlib import Path
 
+from ..core.atomic import check_output_dir
 from ..core.errors import ConfigError
 
 
@@ -28,6 +29,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=handle)
+
+
+def _check_map_plausible(sc, fmap) -> None:  # noqa: ANN001
+    """Refuse a map whose values are implausible for its kind (:mod:`magnav_ins.core.plausibility`) unless the
+    scenario says ``[map] allow_implausible = true``."""
+    from ..core.plausibility import field_values_problem
+
+    if fmap is None or sc.map is None or sc.map.allow_implausible or not hasattr(fmap, "values"):
+        return
+    problem = field_values_problem(fmap.values, fmap.kind)
+    if problem:
+        raise ConfigError(
+            f"{sc.where('map.path')}: implausible for {fmap.kind.value}: {problem} "
+            "(set [map] allow_implausible = true to use it anyway)"
+        )
 
 
 def handle(args: argparse.Namespace) -> int:
@@ -48,9 +64,10 @@ def handle(args: argparse.Namespace) -> int:
         raise ConfigError(f"--seed must be >= 0, got {seed}")
     if args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
-    out = args.out if args.out is not None else Path("runs") / sc.name
+    out = check_output_dir(args.out if args.out is not None else Path("runs") / sc.name)  # before any work
     model = PipelineModel(sc)
     fmap = model.shared()["map"]  # builds truth + map once here: scenario errors surface before any worker starts
+    _check_map_plausible(sc, fmap)
     doc = runner.run_study(
         model,
         runs,

@@ -31,8 +31,9 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.atomic import atomic_path, write_text_atomic
-from ..core.errors import ConfigError
+from ..core.atomic import atomic_path, check_output_dir, write_text_atomic
+from ..core.errors import ConfigError, OutputError
+from ..core.signals import deferred
 from ..core.units import RAD_TO_DEG
 from . import metrics as M
 from .scenario import FREE_INERTIAL
@@ -418,9 +419,14 @@ def write_outputs(
     from . import plots as P
     from . import reports
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    out = check_output_dir(out_dir, option=None)
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    ok = False
     try:
         ds = runs_dataset(summaries, doc.get("name", ""))
         with atomic_path(stage / "runs.nc") as tmp:
@@ -430,13 +436,18 @@ def write_outputs(
         write_text_atomic(stage / "metrics.json", json.dumps(doc, indent=2, allow_nan=False) + "\n")
         names = ["runs.nc", *(f.name for f in figures), "report.md", "metrics.json"]  # metrics.json last
         written = []
-        for name in names:
-            os.chmod(stage / name, 0o644)
-            os.replace(stage / name, out / name)
-            written.append(out / name)
+        with deferred():  # a signal lands before or after the whole set is moved into place, not half-way
+            for name in names:
+                os.chmod(stage / name, 0o644)
+                os.replace(stage / name, out / name)
+                written.append(out / name)
+        ok = True
         return written
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        if created and not ok:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only if empty: the folder this call made for outputs that never came
 
 
 def run_study(

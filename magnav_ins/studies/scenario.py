@@ -41,6 +41,237 @@ FREE_INERTIAL = "free_inertial"
 SPEC_PREFIXES = ("builtin:", "synthetic:")
 
 
+# --------------------------------------------------------------------------------------------- key tables
+@dataclass(frozen=True)
+class ScenarioKey:
+    """One scenario key: where it lives (``table``: ``""`` for the top level, ``"trajectory"``, ``"estimator"`` for
+    every ``[[estimator]]``), its TOML type, whether it is required (``default`` = :data:`REQUIRED`) or its default,
+    and for numbers the accepted range (``lo`` / ``hi``; ``lo_open`` excludes ``lo``) with the reason for it.
+    ``kinds``: the trajectory kinds a ``[trajectory]`` key belongs to (empty: every kind). This table is the
+    documented schema (``docs/scenarios.md`` is generated from it by :func:`schema_markdown`, and a test checks
+    that every key the validator accepts is in it); the validators take their ranges from it."""
+
+    table: str
+    name: str
+    type: str
+    doc: str
+    default: Any = None
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    why: str = ""
+    kinds: tuple[str, ...] = ()
+
+    @property
+    def path(self) -> str:
+        return f"{self.table}.{self.name}" if self.table else self.name
+
+    @property
+    def range_text(self) -> str:
+        if self.lo is None and self.hi is None:
+            return ""
+        lo = "" if self.lo is None else f"{'(' if self.lo_open else '['}{self.lo:g}"
+        hi = "" if self.hi is None else f"{self.hi:g}]"
+        if self.lo is not None and self.hi is not None:
+            return f"{lo}, {hi}"
+        return f"> {self.lo:g}" if self.lo_open else (f">= {self.lo:g}" if self.hi is None else f"<= {self.hi:g}")
+
+
+#: marks a required key in :data:`SCHEMA`
+REQUIRED = "(required)"
+#: IMU rates accepted (Hz): Wang runs the INS at 1 Hz; 2 kHz is above any strapdown IMU's output rate
+IMU_RATE_RANGE_HZ = (1.0, 2000.0)
+#: IMU samples one run may hold (truth, ideal and corrupted IMU, the fusers' buffers: a few hundred bytes each)
+MAX_IMU_SAMPLES_PER_RUN = 2e7
+#: Monte Carlo runs one study may ask for
+MAX_RUNS = 100_000
+
+SCHEMA: tuple[ScenarioKey, ...] = (
+    # top level
+    ScenarioKey("", "name", "string", "study name (the default output folder is runs/NAME)", REQUIRED),
+    ScenarioKey("", "description", "string", "free text, copied into the report", ""),
+    ScenarioKey("", "seed", "integer", "master seed; run i uses SeedSequence(seed).spawn(runs)[i]", 0, lo=0),
+    ScenarioKey("", "runs", "integer", "Monte Carlo runs (--runs overrides)", 1, lo=1, hi=MAX_RUNS),
+    ScenarioKey("", "trajectory", "table", "the truth trajectory", REQUIRED),
+    ScenarioKey("", "imu", "table", "the IMU", REQUIRED),
+    ScenarioKey("", "init", "table", "initial INS errors (1-sigma, drawn per run)", "see [init]"),
+    ScenarioKey("", "map", "table", "the map the matchers use (required with any matcher)", None),
+    ScenarioKey("", "sensor", "table", "the field sensor (required with any matcher)", None),
+    ScenarioKey(
+        "",
+        "estimator",
+        "array of tables",
+        "the estimators ([[estimator]], one or more)",
+        "none: the free-inertial baseline only",
+    ),  # fmt: skip
+    # [trajectory]
+    ScenarioKey("trajectory", "kind", "string", "one of " + ", ".join(TRAJECTORY_KINDS), REQUIRED),
+    ScenarioKey("trajectory", "start", "[lat, lon] deg", "start point", REQUIRED, kinds=("great_circle",)),
+    ScenarioKey("trajectory", "end", "[lat, lon] deg", "end point", REQUIRED, kinds=("great_circle",)),
+    ScenarioKey(
+        "trajectory", "points", "[[lat, lon], ...] deg", "at least two waypoints", REQUIRED, kinds=("waypoints",)
+    ),  # fmt: skip
+    ScenarioKey(
+        "trajectory",
+        "altitude_m",
+        "number",
+        "ellipsoidal height, m",
+        REQUIRED,
+        lo=-11000.0,
+        hi=1e5,
+        why="from the deepest ocean to the edge of space",
+        kinds=("great_circle", "waypoints"),
+    ),  # fmt: skip
+    ScenarioKey(
+        "trajectory",
+        "speed_mps",
+        "number",
+        "ground speed, m/s",
+        REQUIRED,
+        lo=0.0,
+        hi=3000.0,
+        lo_open=True,
+        why="above Mach 8 nothing navigates by maps",
+        kinds=("great_circle", "waypoints", "survey_line"),
+    ),  # fmt: skip
+    ScenarioKey(
+        "trajectory", "survey", "string", "survey CSV(.xz) path or builtin:NAME", REQUIRED, kinds=("survey_line",)
+    ),  # fmt: skip
+    ScenarioKey(
+        "trajectory",
+        "line",
+        "integer or list",
+        "survey line id, or ids flown one after the other",
+        REQUIRED,
+        kinds=("survey_line",),
+    ),  # fmt: skip
+    ScenarioKey("trajectory", "path", "string", "trajectory CSV path", REQUIRED, kinds=("file",)),
+    ScenarioKey(
+        "trajectory",
+        "duration_s",
+        "number",
+        "truncate the trajectory to this many seconds (--duration)",
+        "the whole trajectory",
+        lo=0.0,
+        hi=1e7,
+        lo_open=True,
+        why="at most about 4 months",
+    ),  # fmt: skip
+    # [imu]
+    ScenarioKey("imu", "grade", "string", "one of " + ", ".join(IMU_GRADES), REQUIRED),
+    ScenarioKey(
+        "imu",
+        "rate_hz",
+        "number",
+        "IMU and INS sample rate, Hz",
+        100.0,
+        lo=IMU_RATE_RANGE_HZ[0],
+        hi=IMU_RATE_RANGE_HZ[1],
+        why="strapdown IMUs output 1 Hz (Wang) to 2 kHz",
+    ),  # fmt: skip
+    # [init]
+    ScenarioKey(
+        "init",
+        "position_sigma_m",
+        "number",
+        "north and east position 1-sigma, m",
+        10.0,
+        lo=0.0,
+        hi=1e5,
+        why="beyond 100 km the fusers' linearisation does not hold",
+    ),  # fmt: skip
+    ScenarioKey("init", "velocity_sigma_mps", "number", "velocity 1-sigma per NED axis, m/s", 0.1, lo=0.0, hi=100.0),
+    ScenarioKey(
+        "init",
+        "attitude_sigma_deg",
+        "[roll, pitch, yaw] deg",
+        "attitude 1-sigmas, deg",
+        "[0.02, 0.02, 0.2]",
+        lo=0.0,
+        hi=30.0,
+        why="the error model assumes small attitude errors",
+    ),  # fmt: skip
+    # [map]
+    ScenarioKey("map", "path", "string", "NetCDF grid, survey CSV(.xz), builtin:NAME or synthetic:NAME", REQUIRED),
+    ScenarioKey("map", "kind", "string", "one of " + ", ".join(k.value for k in FieldKind), REQUIRED),
+    ScenarioKey(
+        "map",
+        "grid_spacing_m",
+        "number",
+        "grid a survey CSV at this spacing on load, m",
+        None,
+        lo=0.0,
+        hi=1e5,
+        lo_open=True,
+    ),  # fmt: skip
+    ScenarioKey("map", "exclude_lines", "list of integers", "survey lines left out of the map", "[]"),
+    ScenarioKey("map", "options", "table", "options of a synthetic map (seed, origin_deg, shape, ...)", "{}"),
+    ScenarioKey(
+        "map",
+        "allow_implausible",
+        "boolean",
+        "accept map values implausible for the map's kind (e.g. full gravity as a disturbance)",
+        False,
+    ),  # fmt: skip
+    # [sensor]
+    ScenarioKey("sensor", "kind", "string", "one of " + ", ".join(SENSOR_KINDS), REQUIRED),
+    ScenarioKey(
+        "sensor", "sigma", "number", "reading noise 1-sigma, in the map's unit", REQUIRED, lo=0.0, lo_open=True
+    ),  # fmt: skip
+    ScenarioKey(
+        "sensor",
+        "interval_s",
+        "number",
+        "seconds between readings",
+        REQUIRED,
+        lo=0.0,
+        hi=86400.0,
+        lo_open=True,
+        why="and at least one IMU period",
+    ),  # fmt: skip
+    ScenarioKey("sensor", "source", "string", "one of " + ", ".join(SENSOR_SOURCES), "simulated"),
+    # [[estimator]]
+    ScenarioKey("estimator", "name", "string", "unique; 'free_inertial' is reserved for the baseline", REQUIRED),
+    ScenarioKey(
+        "estimator",
+        "matcher",
+        "inline table",
+        "{ kind = ..., options } (matcher kinds below)",
+        "(required unless fusion is free_inertial)",
+    ),  # fmt: skip
+    ScenarioKey("estimator", "fusion", "inline table", "{ kind = ..., options } (fusion kinds below)", REQUIRED),
+    ScenarioKey(
+        "estimator",
+        "window",
+        "integer",
+        "readings per batch-matcher window",
+        "the matcher's batch, else 1",
+        lo=1,
+        hi=1e6,
+    ),  # fmt: skip
+    ScenarioKey(
+        "estimator",
+        "match_every",
+        "integer",
+        "readings between match attempts",
+        "the matcher's batch, else 1",
+        lo=1,
+        hi=1e6,
+    ),  # fmt: skip
+    ScenarioKey(
+        "estimator",
+        "smooth",
+        "integer",
+        "0: the causal track; N >= 1: the smoothed track (ukf, graph)",
+        0,
+        lo=0,
+        hi=100,
+    ),  # fmt: skip
+    ScenarioKey("estimator", "imu_grade", "string", "this estimator's own IMU grade", "[imu] grade"),
+)
+_SCHEMA_BY_PATH = {k.path: k for k in SCHEMA}
+
+
 # --------------------------------------------------------------------------------------------- line scan
 _HEADER = re.compile(r"^\s*(\[\[?)\s*([^\]]+?)\s*\]\]?\s*(#.*)?$")
 _KEY = re.compile(r"""^\s*((?:[A-Za-z0-9_-]+|"[^"]*"|'[^']*')(?:\s*\.\s*(?:[A-Za-z0-9_-]+|"[^"]*"|'[^']*'))*)\s*=""")
@@ -141,13 +372,15 @@ class InitConfig:
 class MapConfig:
     """Map spec: a NetCDF path, ``builtin:NAME``, ``synthetic:NAME`` or a survey CSV(.xz) gridded on load
     (``grid_spacing_m``, ``exclude_lines``). ``kind`` is a :class:`FieldKind` value. ``options`` holds extra
-    keys for synthetic maps (e.g. ``seed``)."""
+    keys for synthetic maps (e.g. ``seed``). ``allow_implausible``: accept values implausible for ``kind``
+    (:mod:`magnav_ins.core.plausibility`)."""
 
     path: str
     kind: FieldKind
     grid_spacing_m: float | None = None
     exclude_lines: tuple[int, ...] = ()
     options: dict[str, Any] = field(default_factory=dict, compare=False)
+    allow_implausible: bool = False
 
 
 @dataclass(frozen=True)
@@ -276,6 +509,23 @@ def _check_keys(ctx: _Ctx, prefix: str, table: dict[str, Any], allowed: set[str]
             raise ConfigError(f"{loc}: missing key '{prefix + '.' if prefix else ''}{k}' in {table_name} (required)")
 
 
+def schema_key(key: str) -> ScenarioKey | None:
+    """The :data:`SCHEMA` entry of a key path (``"estimator[2].window"`` -> the ``estimator.window`` entry)."""
+    return _SCHEMA_BY_PATH.get(re.sub(r"\[\d+\]", "", key))
+
+
+def _in_range(ctx: _Ctx, key: str, x: float, raw: Any) -> None:
+    """The :data:`SCHEMA` range of ``key``, if it has one."""
+    spec = schema_key(key)
+    if spec is None or (spec.lo is None and spec.hi is None):
+        return
+    low = spec.lo is not None and (x <= spec.lo if spec.lo_open else x < spec.lo)
+    high = spec.hi is not None and x > spec.hi
+    if low or high:
+        why = f": {spec.why}" if spec.why else ""
+        raise ctx.error(key, f"{raw!r} is out of range; expected {spec.range_text}{why}")
+
+
 def _number(ctx: _Ctx, key: str, v: Any, *, positive: bool = False, nonneg: bool = False) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise ctx.error(key, f"expected a number, got {type(v).__name__} {v!r}")
@@ -286,6 +536,7 @@ def _number(ctx: _Ctx, key: str, v: Any, *, positive: bool = False, nonneg: bool
         raise ctx.error(key, f"expected a positive number, got {v!r}")
     if nonneg and x < 0:
         raise ctx.error(key, f"expected a number >= 0, got {v!r}")
+    _in_range(ctx, key, x, v)
     return x
 
 
@@ -294,6 +545,7 @@ def _int(ctx: _Ctx, key: str, v: Any, *, minimum: int | None = None) -> int:
         raise ctx.error(key, f"expected an integer, got {type(v).__name__} {v!r}")
     if minimum is not None and v < minimum:
         raise ctx.error(key, f"expected an integer >= {minimum}, got {v}")
+    _in_range(ctx, key, float(v), v)
     return int(v)
 
 
@@ -397,7 +649,13 @@ def _init(ctx: _Ctx, t: dict[str, Any] | None) -> InitConfig:
 
 
 def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
-    _check_keys(ctx, "map", t, {"path", "kind", "grid_spacing_m", "exclude_lines", "options"}, {"path", "kind"})
+    _check_keys(
+        ctx,
+        "map",
+        t,
+        {"path", "kind", "grid_spacing_m", "exclude_lines", "options", "allow_implausible"},
+        {"path", "kind"},
+    )
     path = _path(ctx, "map.path", t["path"], base)
     kind_s = _str(ctx, "map.kind", t["kind"], tuple(k.value for k in FieldKind))
     spacing = None
@@ -410,7 +668,10 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     opts = t.get("options", {})
     if not isinstance(opts, dict):
         raise ctx.error("map.options", f"expected a table, got {opts!r}")
-    return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts))
+    allow = t.get("allow_implausible", False)
+    if not isinstance(allow, bool):
+        raise ctx.error("map.allow_implausible", f"expected true or false, got {allow!r}")
+    return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), allow)
 
 
 def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfig) -> SensorConfig:
@@ -422,12 +683,28 @@ def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfi
         )
     sigma = _number(ctx, "sensor.sigma", t["sigma"], positive=True)
     interval = _number(ctx, "sensor.interval_s", t["interval_s"], positive=True)
+    limit = _SENSOR_SIGMA_MAX[SENSOR_KINDS[kind]]
+    if sigma > limit:
+        raise ctx.error(
+            "sensor.sigma",
+            f"{t['sigma']!r} {SENSOR_KINDS[kind].unit} is implausible for a {kind} (at most {limit:g}: the map's own "
+            "range); is it in the map's unit?",
+        )
     source = _str(ctx, "sensor.source", t.get("source", "simulated"), SENSOR_SOURCES)
     if source == "survey" and traj.kind != "survey_line":
         raise ctx.error(
             "sensor.source", f"source = 'survey' needs [trajectory] kind = 'survey_line', got {traj.kind!r}"
         )
     return SensorConfig(kind, sigma, interval, source)
+
+
+#: largest reading noise (1-sigma, the kind's unit) accepted per kind: above it the noise exceeds the whole signal
+#: (gravity disturbances span a few hundred mGal, crustal anomalies a few thousand nT)
+_SENSOR_SIGMA_MAX = {
+    FieldKind.GRAVITY_DISTURBANCE_MGAL: 1_000.0,
+    FieldKind.TOTAL_FIELD_ANOMALY_NT: 10_000.0,
+    FieldKind.VECTOR_FIELD_NT: 100_000.0,
+}
 
 
 def _spec(ctx: _Ctx, key: str, v: Any) -> dict[str, Any]:
@@ -522,6 +799,45 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
     return tuple(out)
 
 
+def estimated_duration_s(traj: TrajectoryConfig) -> float | None:
+    """Flight time (s) of a great-circle or waypoint trajectory from its length on a sphere of the Earth's mean radius
+    and its speed (capped by ``duration_s``); None when only the data tell (survey lines, files)."""
+    if traj.kind == "great_circle" and traj.start_deg and traj.end_deg:
+        pts = [traj.start_deg, traj.end_deg]
+    elif traj.kind == "waypoints" and traj.points_deg:
+        pts = list(traj.points_deg)
+    else:
+        return traj.duration_s
+    length = 0.0
+    for (la0, lo0), (la1, lo1) in zip(pts[:-1], pts[1:], strict=True):
+        p0, p1, dl = math.radians(la0), math.radians(la1), math.radians(lo1 - lo0)
+        c = math.sin(p0) * math.sin(p1) + math.cos(p0) * math.cos(p1) * math.cos(dl)
+        length += _MEAN_EARTH_RADIUS_M * math.acos(max(-1.0, min(1.0, c)))
+    t = length / traj.speed_mps if traj.speed_mps else math.inf
+    return min(t, traj.duration_s) if traj.duration_s is not None else t
+
+
+#: mean Earth radius (IUGG), m: only for the size estimate of :func:`estimated_duration_s`
+_MEAN_EARTH_RADIUS_M = 6_371_008.8
+
+
+def _check_sizes(ctx: _Ctx, traj: TrajectoryConfig, imu: ImuConfig, sensor: SensorConfig | None) -> None:
+    """Cross-key limits: a reading interval of at least one IMU period, and at most
+    :data:`MAX_IMU_SAMPLES_PER_RUN` IMU samples per run (memory), naming the keys to change."""
+    if sensor is not None and sensor.interval_s * imu.rate_hz < 1.0 - 1e-9:
+        raise ctx.error(
+            "sensor.interval_s",
+            f"{sensor.interval_s:g} s is shorter than one IMU period (1 / rate_hz = {1.0 / imu.rate_hz:g} s)",
+        )
+    dur = estimated_duration_s(traj)
+    if dur is not None and dur * imu.rate_hz > MAX_IMU_SAMPLES_PER_RUN:
+        raise ctx.error(
+            "imu.rate_hz",
+            f"{imu.rate_hz:g} Hz over the {dur:.4g} s trajectory is {dur * imu.rate_hz:.3g} IMU samples per run, more "
+            f"than {MAX_IMU_SAMPLES_PER_RUN:.0e} (memory); lower rate_hz or set [trajectory] duration_s",
+        )
+
+
 _TOP_KEYS = {"name", "description", "seed", "runs", "trajectory", "imu", "init", "map", "sensor", "estimator"}
 
 
@@ -550,15 +866,33 @@ def scenario_from_dict(
             raise ctx.error("sensor", "a [sensor] needs a [map] to read from")
         sensor = _sensor(ctx, _table(ctx, data, "sensor"), fmap, traj)  # type: ignore[arg-type]
     ests = _estimators(ctx, data)
+    _check_sizes(ctx, traj, imu, sensor)
     return Scenario(name, seed, runs, traj, imu, init, fmap, sensor, ests, description, source, dict(ctx.lines))
 
 
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file. Raises :class:`ConfigError` naming the file, line and key."""
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder; expected a scenario file (TOML)")
     if not path.is_file():
         raise ConfigError(f"{path}: scenario file does not exist")
-    text = path.read_text(encoding="utf-8")
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the scenario file ({exc.strerror or exc})") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(
+            f"{path} line {line}: not a text file (byte {exc.start} is not UTF-8); expected TOML"
+        ) from None
+    if "\x00" in text:
+        line = text[: text.index("\x00")].count("\n") + 1
+        raise ConfigError(f"{path} line {line}: not a text file (it holds a NUL byte); expected TOML")
+    if not text.strip():
+        raise ConfigError(f"{path}: the scenario file is empty")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
