@@ -12,7 +12,7 @@ import dataclasses
 from pathlib import Path
 
 from ..core.atomic import check_output_dir
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, warn
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -46,6 +46,40 @@ def _check_map_plausible(sc, fmap) -> None:  # noqa: ANN001
         )
 
 
+#: truth samples tested against the map's coverage before a study (evenly spaced)
+_COVERAGE_SAMPLES = 2000
+
+
+def _coverage_warnings(sc, truth, fmap) -> list[str]:  # noqa: ANN001
+    """Before the runs: a trajectory that never crosses the map can get no fix; say so (with a hint when every
+    coordinate is within +-pi: radians written as degrees)."""
+    import numpy as np
+
+    from ..core.units import RAD_TO_DEG
+
+    if fmap is None or sc.sensor is None or not any(e.matcher for e in sc.estimators):
+        return []
+    k = np.unique(np.linspace(0, len(truth.t) - 1, min(len(truth.t), _COVERAGE_SAMPLES)).astype(int))
+    lat, lon = np.asarray(truth.lat)[k], np.asarray(truth.lon)[k]
+    on = np.asarray(fmap.covers(lat, lon), bool)
+    if on.any():
+        return []
+    la, lo = lat * RAD_TO_DEG, lon * RAD_TO_DEG
+    line = (
+        f"{sc.where('trajectory')}: the trajectory (lat {la.min():.4f}..{la.max():.4f}, lon {lo.min():.4f}.."
+        f"{lo.max():.4f} deg) never crosses the map {sc.map.path}"
+    )
+    if hasattr(fmap, "bounds_latlon"):
+        b = np.asarray(fmap.bounds_latlon) * RAD_TO_DEG
+        line += f" (lat {b[0]:.4f}..{b[1]:.4f}, lon {b[2]:.4f}..{b[3]:.4f} deg)"
+    line += ": no fix can be attempted"
+    tr = sc.trajectory
+    pts = [p for p in (tr.start_deg, tr.end_deg, *(tr.points_deg or ())) if p is not None]
+    if pts and all(abs(a) <= np.pi and abs(b) <= np.pi for a, b in pts):
+        line += "; every coordinate is within +-pi: radians written as degrees?"
+    return [line]
+
+
 def handle(args: argparse.Namespace) -> int:
     from ..studies import reports, runner
     from ..studies.model import PipelineModel
@@ -68,6 +102,9 @@ def handle(args: argparse.Namespace) -> int:
     model = PipelineModel(sc)
     fmap = model.shared()["map"]  # builds truth + map once here: scenario errors surface before any worker starts
     _check_map_plausible(sc, fmap)
+    notes = _coverage_warnings(sc, model.shared()["truth"], fmap)
+    for line in notes:
+        warn(line)
     doc = runner.run_study(
         model,
         runs,
@@ -80,7 +117,10 @@ def handle(args: argparse.Namespace) -> int:
         fmap=fmap,
         command=f"magnav-ins run {args.scenario} --runs {runs} --seed {seed} --out {out}"
         + (f" --duration {args.duration:g}" if args.duration is not None else ""),
+        warnings=notes,
     )
     print(reports.metrics_table(doc), end="")
+    for line in doc["warnings"][len(notes) :]:
+        warn(line)
     print(f"wrote {out / 'metrics.json'} ({doc['runs']} runs, {doc['wall_s']:.1f} s)")
     return 0

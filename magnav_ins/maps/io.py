@@ -234,6 +234,12 @@ def read_map(
     elif frame == "local":
         ydim, xdim = "northing", "easting"
     else:
+        projected = {"x", "y"} <= set(dims) or {"easting", "northing"} <= set(dims) or "crs" in ds.attrs
+        if projected:  # UTM & co.: a local tangent plane ('local') would misplace it by up to hundreds of metres
+            raise MapError(
+                f"{path}: the grid is in projected coordinates (dimensions {dims}); reproject it to latitude / "
+                "longitude (WGS84) first, e.g. gdalwarp -t_srs EPSG:4326"
+            )
         raise MapError(f"{path}: cannot tell the frame; set global attribute magnav_frame='geodetic' or 'local'")
     if ydim not in dims or xdim not in dims:
         raise MapError(f"{where_}: expected dimensions ({ydim}, {xdim}), found {dims}")
@@ -257,6 +263,11 @@ def read_map(
     vals = np.asarray(da.values, dtype=float)
     if alt_da is not None:
         alt = np.asarray(alt_da.values, dtype=float)
+    if frame == "geodetic" and x.size > 2:
+        wraps = np.flatnonzero(np.diff(x) < -180.0)
+        if len(wraps) == 1:  # an axis wrapped at the antimeridian (..., 179.9, -179.9, ...): make it continuous
+            x = x.copy()
+            x[wraps[0] + 1 :] += 360.0
     if y.size > 1 and y[1] < y[0]:
         y, vals = y[::-1], vals[::-1]
         alt = alt[::-1] if np.ndim(alt) else alt

@@ -478,4 +478,5 @@ def run_estimator(
         np.array([f.lon for f in fixes], float),
         np.array([np.asarray(f.cov_ne, float) for f in fixes], float).reshape(-1, 2, 2),
         np.array([f.available for f in fixes], bool),
+        tuple(f.reason for f in fixes),
     )

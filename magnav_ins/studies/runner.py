@@ -49,7 +49,8 @@ class EstimatorOutput:
 
     ``lat``, ``lon`` (N,) rad; ``cov_ne`` (N,2,2) m^2 horizontal covariance or None (free inertial without a
     filter). Fixes: ``fix_t`` (K,) s, ``fix_lat``, ``fix_lon`` (K,) rad (NaN for "no fix"), ``fix_cov_ne``
-    (K,2,2) m^2, ``fix_available`` (K,) bool; one entry per fix attempt.
+    (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the matcher's reason of each "no fix" (empty
+    tuple: not recorded); one entry per fix attempt.
     """
 
     name: str
@@ -63,6 +64,7 @@ class EstimatorOutput:
     fix_lon: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     fix_cov_ne: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2, 2)))
     fix_available: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    fix_reason: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -172,6 +174,7 @@ def summarise_run(
             fix_errors_m=np.hypot(fdn, fde)[fix_avail] if len(fix_t) else np.zeros(0),
             fix_attempts=len(fix_t),
             divergent=M.is_divergent(e, e_free),
+            no_fix_reasons=_no_fix_reasons(est),
         )
         sn, se, rho = _cov_parts(cov, len(sel))
         res[est.name] = EstimatorSummary(
@@ -179,6 +182,15 @@ def summarise_run(
             fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail,
         )  # fmt: skip
     return RunSummary(index, t, lat_t, lon_t, res, wall_s)
+
+
+def _no_fix_reasons(est: EstimatorOutput) -> dict[str, int]:
+    """Counted reasons of the estimator's "no fix"es (:func:`metrics.count_reasons`); without recorded reasons
+    they count as ``(no reason given)``."""
+    avail = np.asarray(est.fix_available, bool)
+    if len(est.fix_reason) == len(avail):
+        return M.count_reasons([r for r, ok in zip(est.fix_reason, avail, strict=True) if not ok])
+    return M.count_reasons([""] * int((~avail).sum()))
 
 
 def _run_task(model: StudyModel, index: int, seed: np.random.SeedSequence, max_samples: int) -> RunSummary:
@@ -325,8 +337,30 @@ def _execute_dask(
 
 
 # ------------------------------------------------------------------------------------------------ aggregation
-def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: str = "") -> dict[str, Any]:
-    """The ``metrics.json`` document (see :mod:`.metrics` for the definitions)."""
+def fix_warnings(doc: dict[str, Any]) -> list[str]:
+    """One line per estimator with a matcher that never got a fix: no attempt at all, or attempts that all ended
+    in "no fix" (with their counted reasons, as the replay summary gives them)."""
+    out: list[str] = []
+    for name, m in doc["estimators"].items():
+        if m.get("matcher") is None:
+            continue
+        attempts, issued = m.get("fix_attempts", 0), m.get("fixes_issued", 0)
+        if attempts == 0:
+            out.append(
+                f"estimator {name!r}: no fix attempt in {doc['runs']} run(s) (no reading on the map, or fewer "
+                "readings than the matcher's window): it ran unaided"
+            )
+        elif issued == 0:
+            why = "; ".join(f"{r} x{n}" for r, n in (m.get("no_fix_reasons") or {}).items()) or "no reason given"
+            out.append(f"estimator {name!r}: 0 of {attempts} fix attempts gave a fix ({why}): it ran unaided")
+    return out
+
+
+def study_metrics(
+    summaries: list[RunSummary], seed: int, wall_s: float, name: str = "", warnings: Sequence[str] = ()
+) -> dict[str, Any]:
+    """The ``metrics.json`` document (see :mod:`.metrics` for the definitions). ``warnings``: lines found before
+    the runs (e.g. a trajectory that never crosses the map); :func:`fix_warnings` adds its own."""
     names = list(summaries[0].estimators)
     doc: dict[str, Any] = {
         "name": name,
@@ -343,6 +377,7 @@ def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: s
             doc["free_inertial"] = entry
         else:
             doc["estimators"][nm] = entry
+    doc["warnings"] = [*warnings, *fix_warnings(doc)]
     return doc
 
 
@@ -462,11 +497,13 @@ def run_study(
     fmap: Any = None,
     max_samples: int = DEFAULT_MAX_SAMPLES,
     command: str | None = None,
+    warnings: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Execute the study and (if ``out_dir``) write its outputs. Returns the ``metrics.json`` document."""
+    """Execute the study and (if ``out_dir``) write its outputs. Returns the ``metrics.json`` document (with
+    ``warnings``: the given lines and :func:`fix_warnings`)."""
     t0 = time.perf_counter()
     summaries = execute(model, runs, seed, jobs, scheduler, quiet, max_samples)
-    doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name)
+    doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name, warnings)
     if out_dir is not None:
         write_outputs(out_dir, summaries, doc, plots=plots, fmap=fmap, command=command)
     return doc
