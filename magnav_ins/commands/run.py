@@ -17,7 +17,7 @@ from ..core.errors import ConfigError, warn
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("run", help="Monte Carlo study from a scenario TOML: metrics.json, runs.nc, report, plots")
-    p.add_argument("scenario", type=Path, help="scenario file (TOML; schema in DESIGN.md)")
+    p.add_argument("scenario", type=Path, help="scenario file (TOML; keys in docs/scenarios.md)")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: runs/<scenario name>)")
     p.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default: the scenario's 'runs')")
     p.add_argument("--seed", type=int, default=None, help="master seed (default: the scenario's 'seed')")

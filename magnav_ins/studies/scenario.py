@@ -1,4 +1,5 @@
-"""Scenario files: TOML -> validated, frozen configuration dataclasses (schema in ``shared/DESIGN.md``).
+"""Scenario files: TOML -> validated, frozen configuration dataclasses (every key in :data:`SCHEMA`, rendered as
+``docs/scenarios.md`` by :mod:`.scenario_doc`).
 
 Every mistake raises :class:`~magnav_ins.core.errors.ConfigError` naming the file, the line, the key and what was
 expected: unknown keys, missing keys, wrong types, out-of-range values (units are in the key names: ``_m``, ``_s``,
@@ -68,13 +69,16 @@ class ScenarioKey:
 
     @property
     def range_text(self) -> str:
+        def num(x: float) -> str:
+            return f"{int(x)}" if float(x).is_integer() and abs(x) < 1e9 else f"{x:g}"
+
         if self.lo is None and self.hi is None:
             return ""
-        lo = "" if self.lo is None else f"{'(' if self.lo_open else '['}{self.lo:g}"
-        hi = "" if self.hi is None else f"{self.hi:g}]"
         if self.lo is not None and self.hi is not None:
-            return f"{lo}, {hi}"
-        return f"> {self.lo:g}" if self.lo_open else (f">= {self.lo:g}" if self.hi is None else f"<= {self.hi:g}")
+            return f"{'(' if self.lo_open else '['}{num(self.lo)}, {num(self.hi)}]"
+        if self.lo is not None:
+            return f"> {num(self.lo)}" if self.lo_open else f">= {num(self.lo)}"
+        return f"<= {num(self.hi)}"  # type: ignore[arg-type]
 
 
 #: marks a required key in :data:`SCHEMA`
@@ -85,6 +89,15 @@ IMU_RATE_RANGE_HZ = (1.0, 2000.0)
 MAX_IMU_SAMPLES_PER_RUN = 2e7
 #: Monte Carlo runs one study may ask for
 MAX_RUNS = 100_000
+
+#: largest reading noise (1-sigma, the kind's unit) accepted per kind: above it the noise exceeds the whole signal
+#: (gravity disturbances span a few hundred mGal, crustal anomalies a few thousand nT)
+SENSOR_SIGMA_MAX = {
+    FieldKind.GRAVITY_DISTURBANCE_MGAL: 1_000.0,
+    FieldKind.TOTAL_FIELD_ANOMALY_NT: 10_000.0,
+    FieldKind.VECTOR_FIELD_NT: 100_000.0,
+}
+
 
 SCHEMA: tuple[ScenarioKey, ...] = (
     # top level
@@ -103,14 +116,14 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "array of tables",
         "the estimators ([[estimator]], one or more)",
         "none: the free-inertial baseline only",
-    ),  # fmt: skip
+    ),
     # [trajectory]
     ScenarioKey("trajectory", "kind", "string", "one of " + ", ".join(TRAJECTORY_KINDS), REQUIRED),
     ScenarioKey("trajectory", "start", "[lat, lon] deg", "start point", REQUIRED, kinds=("great_circle",)),
     ScenarioKey("trajectory", "end", "[lat, lon] deg", "end point", REQUIRED, kinds=("great_circle",)),
     ScenarioKey(
         "trajectory", "points", "[[lat, lon], ...] deg", "at least two waypoints", REQUIRED, kinds=("waypoints",)
-    ),  # fmt: skip
+    ),
     ScenarioKey(
         "trajectory",
         "altitude_m",
@@ -121,7 +134,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         hi=1e5,
         why="from the deepest ocean to the edge of space",
         kinds=("great_circle", "waypoints"),
-    ),  # fmt: skip
+    ),
     ScenarioKey(
         "trajectory",
         "speed_mps",
@@ -133,10 +146,10 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         lo_open=True,
         why="above Mach 8 nothing navigates by maps",
         kinds=("great_circle", "waypoints", "survey_line"),
-    ),  # fmt: skip
+    ),
     ScenarioKey(
         "trajectory", "survey", "string", "survey CSV(.xz) path or builtin:NAME", REQUIRED, kinds=("survey_line",)
-    ),  # fmt: skip
+    ),
     ScenarioKey(
         "trajectory",
         "line",
@@ -144,7 +157,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "survey line id, or ids flown one after the other",
         REQUIRED,
         kinds=("survey_line",),
-    ),  # fmt: skip
+    ),
     ScenarioKey("trajectory", "path", "string", "trajectory CSV path", REQUIRED, kinds=("file",)),
     ScenarioKey(
         "trajectory",
@@ -156,7 +169,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         hi=1e7,
         lo_open=True,
         why="at most about 4 months",
-    ),  # fmt: skip
+    ),
     # [imu]
     ScenarioKey("imu", "grade", "string", "one of " + ", ".join(IMU_GRADES), REQUIRED),
     ScenarioKey(
@@ -168,7 +181,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         lo=IMU_RATE_RANGE_HZ[0],
         hi=IMU_RATE_RANGE_HZ[1],
         why="strapdown IMUs output 1 Hz (Wang) to 2 kHz",
-    ),  # fmt: skip
+    ),
     # [init]
     ScenarioKey(
         "init",
@@ -179,7 +192,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         lo=0.0,
         hi=1e5,
         why="beyond 100 km the fusers' linearisation does not hold",
-    ),  # fmt: skip
+    ),
     ScenarioKey("init", "velocity_sigma_mps", "number", "velocity 1-sigma per NED axis, m/s", 0.1, lo=0.0, hi=100.0),
     ScenarioKey(
         "init",
@@ -190,7 +203,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         lo=0.0,
         hi=30.0,
         why="the error model assumes small attitude errors",
-    ),  # fmt: skip
+    ),
     # [map]
     ScenarioKey("map", "path", "string", "NetCDF grid, survey CSV(.xz), builtin:NAME or synthetic:NAME", REQUIRED),
     ScenarioKey("map", "kind", "string", "one of " + ", ".join(k.value for k in FieldKind), REQUIRED),
@@ -203,7 +216,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         lo=0.0,
         hi=1e5,
         lo_open=True,
-    ),  # fmt: skip
+    ),
     ScenarioKey("map", "exclude_lines", "list of integers", "survey lines left out of the map", "[]"),
     ScenarioKey("map", "options", "table", "options of a synthetic map (seed, origin_deg, shape, ...)", "{}"),
     ScenarioKey(
@@ -212,12 +225,19 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "boolean",
         "accept map values implausible for the map's kind (e.g. full gravity as a disturbance)",
         False,
-    ),  # fmt: skip
+    ),
     # [sensor]
     ScenarioKey("sensor", "kind", "string", "one of " + ", ".join(SENSOR_KINDS), REQUIRED),
     ScenarioKey(
-        "sensor", "sigma", "number", "reading noise 1-sigma, in the map's unit", REQUIRED, lo=0.0, lo_open=True
-    ),  # fmt: skip
+        "sensor",
+        "sigma",
+        "number",
+        "reading noise 1-sigma, in the map's unit",
+        REQUIRED,
+        lo=0.0,
+        lo_open=True,
+        why="and at most " + ", ".join(f"{v:g} {k.unit} ({k.value})" for k, v in SENSOR_SIGMA_MAX.items()),
+    ),
     ScenarioKey(
         "sensor",
         "interval_s",
@@ -228,7 +248,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         hi=86400.0,
         lo_open=True,
         why="and at least one IMU period",
-    ),  # fmt: skip
+    ),
     ScenarioKey("sensor", "source", "string", "one of " + ", ".join(SENSOR_SOURCES), "simulated"),
     # [[estimator]]
     ScenarioKey("estimator", "name", "string", "unique; 'free_inertial' is reserved for the baseline", REQUIRED),
@@ -238,7 +258,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "inline table",
         "{ kind = ..., options } (matcher kinds below)",
         "(required unless fusion is free_inertial)",
-    ),  # fmt: skip
+    ),
     ScenarioKey("estimator", "fusion", "inline table", "{ kind = ..., options } (fusion kinds below)", REQUIRED),
     ScenarioKey(
         "estimator",
@@ -248,7 +268,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "the matcher's batch, else 1",
         lo=1,
         hi=1e6,
-    ),  # fmt: skip
+    ),
     ScenarioKey(
         "estimator",
         "match_every",
@@ -257,7 +277,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "the matcher's batch, else 1",
         lo=1,
         hi=1e6,
-    ),  # fmt: skip
+    ),
     ScenarioKey(
         "estimator",
         "smooth",
@@ -266,7 +286,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         0,
         lo=0,
         hi=100,
-    ),  # fmt: skip
+    ),
     ScenarioKey("estimator", "imu_grade", "string", "this estimator's own IMU grade", "[imu] grade"),
 )
 _SCHEMA_BY_PATH = {k.path: k for k in SCHEMA}
@@ -683,7 +703,7 @@ def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfi
         )
     sigma = _number(ctx, "sensor.sigma", t["sigma"], positive=True)
     interval = _number(ctx, "sensor.interval_s", t["interval_s"], positive=True)
-    limit = _SENSOR_SIGMA_MAX[SENSOR_KINDS[kind]]
+    limit = SENSOR_SIGMA_MAX[SENSOR_KINDS[kind]]
     if sigma > limit:
         raise ctx.error(
             "sensor.sigma",
@@ -696,15 +716,6 @@ def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfi
             "sensor.source", f"source = 'survey' needs [trajectory] kind = 'survey_line', got {traj.kind!r}"
         )
     return SensorConfig(kind, sigma, interval, source)
-
-
-#: largest reading noise (1-sigma, the kind's unit) accepted per kind: above it the noise exceeds the whole signal
-#: (gravity disturbances span a few hundred mGal, crustal anomalies a few thousand nT)
-_SENSOR_SIGMA_MAX = {
-    FieldKind.GRAVITY_DISTURBANCE_MGAL: 1_000.0,
-    FieldKind.TOTAL_FIELD_ANOMALY_NT: 10_000.0,
-    FieldKind.VECTOR_FIELD_NT: 100_000.0,
-}
 
 
 def _spec(ctx: _Ctx, key: str, v: Any) -> dict[str, Any]:
