@@ -74,7 +74,7 @@ def build_truth(sc: Scenario) -> NavTrajectory:
             traj = simulate.waypoints(pts, tr.speed_mps, rate)
         elif tr.kind == "survey_line":
             line = survey_line_points(sc)
-            if len(tr.lines) > 1:
+            if len(np.unique(line["line"])) > 1:
                 lat, lon, h = _with_run_ins(line, SURVEY_RUN_IN_M)
                 traj = simulate.survey_line(lat, lon, h, tr.speed_mps, rate, turn_rate=SURVEY_TURN_RATE)
             else:
@@ -128,11 +128,26 @@ def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
     from ..maps import io as maps_io
 
     tr = sc.trajectory
-    ids = tr.lines or (tr.line,)
+    try:
+        survey = maps_io.read_survey(tr.survey, **tr.survey_options())  # type: ignore[arg-type]
+    except MagnavError as exc:
+        raise ConfigError(f"{sc.where('trajectory.survey')}: {exc}") from None
+    ids: tuple[int, ...] = tr.lines or ((tr.line,) if tr.line is not None else ())
+    if tr.line_type is not None:
+        try:
+            of_type = survey.ids_of_type(tr.line_type)
+        except MagnavError as exc:
+            raise ConfigError(f"{sc.where('trajectory.line_type')}: {exc}") from None
+        if ids:  # both given: the listed lines, which must be of that type
+            wrong = [i for i in ids if i not in of_type]
+            if wrong:
+                raise ConfigError(f"{sc.where('trajectory.line')}: lines {wrong} are not of line_type {tr.line_type!r}")
+        else:
+            ids = tuple(of_type)
     parts: list[dict[str, np.ndarray]] = []
     for ln in ids:
         try:
-            p = maps_io.read_survey_line(tr.survey, ln)  # type: ignore[arg-type]
+            p = maps_io.survey_line(survey, ln)
         except MagnavError as exc:
             raise ConfigError(f"{sc.where('trajectory.line')}: {exc}") from None
         if parts:
@@ -196,6 +211,8 @@ def build_map(sc: Scenario) -> Any:
     from ..maps import io as maps_io
 
     try:
+        if m.path.lower().endswith(maps_io.SURVEY_SUFFIXES):
+            opts = {"kind": m.kind, **m.load_options(), **opts}
         fmap = maps_io.load_map(
             m.path, grid_spacing_m=m.grid_spacing_m, exclude_lines=list(m.exclude_lines) or None, **opts
         )
