@@ -14,6 +14,9 @@ kind               class                                                        
 ``bayes_grid``     :class:`~.bayes_grid.BayesGridMatcher`                        recursive
 ``particle``       :class:`~.particle.ParticleFilter` (MagNavigate dynamics)     recursive
 ``particle_ins``   :class:`~.particle.ParticleFilter` (``dynamics="ins"``)       recursive
+``tercom``         :class:`~.tercom.TercomMatcher` (Golden 1980)                 batch
+``iccp``           :class:`~.iccp.ICCPMatcher` (Besl & McKay 1992)               batch
+``pmf``            :class:`~.pmf.PointMassFilter` (Bergman et al. 1999)          recursive
 =================  ==========================================================  ========
 
 A particle filter's ``fix_matcher`` may itself be a config dict; its ``road`` map is passed as an object
@@ -28,9 +31,12 @@ from typing import Any
 
 from ...core.errors import ConfigError
 from .bayes_grid import BayesGridMatcher
+from .iccp import ICCPMatcher
 from .likelihood import LikelihoodMatcher
 from .particle import ParticleFilter
+from .pmf import PointMassFilter
 from .pmht import PMHTMatcher
+from .tercom import TercomMatcher
 
 #: kind -> (class, fixed parameters the kind implies)
 KINDS: dict[str, tuple[type, dict[str, Any]]] = {
@@ -41,10 +47,13 @@ KINDS: dict[str, tuple[type, dict[str, Any]]] = {
     "bayes_grid": (BayesGridMatcher, {}),
     "particle": (ParticleFilter, {"dynamics": "gauss_markov"}),
     "particle_ins": (ParticleFilter, {"dynamics": "ins"}),
+    "tercom": (TercomMatcher, {}),
+    "iccp": (ICCPMatcher, {}),
+    "pmf": (PointMassFilter, {}),
 }
 
 #: kinds implementing ``RecursiveMatcher`` (initiate / predict / update / to_fix) rather than ``match``.
-RECURSIVE_KINDS = frozenset({"bayes_grid", "particle", "particle_ins"})
+RECURSIVE_KINDS = frozenset({"bayes_grid", "particle", "particle_ins", "pmf"})
 
 _OBJECT_KEYS = {"road"}
 
