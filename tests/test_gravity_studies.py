@@ -108,3 +108,76 @@ def test_marine_grid_reads_with_its_own_unit(shared_data):
         read_gravity_grid(
             shared_data / "marine_gravity" / "AK_gulf_grav.nc", unit="um/s^2", altitude_m=0.0, datum="WGS84"
         )
+
+
+# ---------------------------------------------------------------------------------------------- the flight's CRLB
+def test_posterior_crlb_static_state_is_information_addition():
+    """Phi = I, Q = 0, the same information J each step: P_k = (P0^-1 + k J)^-1 exactly."""
+    from magnav_ins.maps.variability import posterior_crlb
+
+    P0 = np.diag([100.0, 50.0, 9.0])
+    Jm = np.array([[0.5, 0.1, 0.0], [0.1, 0.2, 0.0], [0.0, 0.0, 0.0]])
+    K = 7
+    P = posterior_crlb(P0, np.tile(np.eye(3), (K, 1, 1)), np.zeros((K, 3, 3)), np.tile(Jm, (K, 1, 1)))
+    for k in (0, 3, 7):
+        assert np.allclose(P[k], np.linalg.inv(np.linalg.inv(P0) + k * Jm), rtol=1e-10)
+    # a held state keeps its variance and loses its correlations
+    Ph = posterior_crlb(P0 + 1.0, np.tile(np.eye(3), (K, 1, 1)), np.zeros((K, 3, 3)), np.tile(Jm, (K, 1, 1)), (2,))
+    assert Ph[-1, 2, 2] == pytest.approx(10.0) and Ph[-1, 0, 2] == 0.0
+
+
+def _crlb_scenario(sigma_field: float):
+    return scenario_from_dict(
+        {
+            "name": "crlb",
+            "trajectory": {
+                "kind": "great_circle",
+                "start": [45.0, 7.0],
+                "end": [45.0, 7.2],
+                "altitude_m": 100.0,
+                "speed_mps": 20.0,
+                "duration_s": 600.0,
+            },  # fmt: skip
+            "imu": {"grade": "navigation", "rate_hz": 1.0},
+            "init": {"position_sigma_m": 50.0},
+            "map": {
+                "path": "synthetic:random_field",
+                "kind": "gravity_disturbance_mgal",
+                "options": {
+                    "seed": 3,
+                    "origin_deg": [44.95, 6.95, 100.0],
+                    "shape": [200, 400],
+                    "spacing_m": 100.0,
+                    "correlation_length_m": 2000.0,
+                    "sigma": sigma_field,
+                },
+            },  # fmt: skip
+            "sensor": {"kind": "gravimeter", "sigma": 1.0, "interval_s": 10.0},
+            "estimator": [{"name": "pmht+ukf", "matcher": {"kind": "pmht"}, "fusion": {"kind": "ukf"}}],
+        }
+    )
+
+
+def test_flight_crlb_without_map_information_is_the_free_inertial_covariance():
+    """An independent check of the recursion: on a map with (almost) no gradient the bound is the free-inertial
+    covariance that ins.error_model.propagate_covariance gives along the same truth (altitude held)."""
+    from magnav_ins.ins.error_model import propagate_covariance
+    from magnav_ins.ins.imu_models import get_grade
+    from magnav_ins.studies.crlb import crlb_metrics, flight_crlb
+
+    flat = _crlb_scenario(1e-6)
+    m = model.PipelineModel(flat)
+    sh = m.shared()
+    t, sig = flight_crlb(flat, sh["truth"], sh["imu"], sh["map"])
+    P0 = np.asarray(model.initial_estimate(flat, sh["truth"].at(0)).P)
+    t2, P2 = propagate_covariance(P0, sh["truth"], sh["imu"], get_grade("navigation"), 10.0, altitude_hold=True)
+    free = np.sqrt(P2[:, 0, 0] + P2[:, 1, 1])
+    assert np.allclose(np.interp(t2, t, sig), free, rtol=2e-3)
+    # with map features the bound is far below the free INS and bounded
+    rough = _crlb_scenario(20.0)
+    mr = model.PipelineModel(rough)
+    shr = mr.shared()
+    tr, sr = flight_crlb(rough, shr["truth"], shr["imu"], shr["map"])
+    assert sr[-1] < 0.15 * free[-1]  # 71 m against 843 m
+    doc = mr.crlb_metrics()
+    assert doc == crlb_metrics(tr, sr) and doc["crlb_final_horizontal_m"] == pytest.approx(sr[-1])

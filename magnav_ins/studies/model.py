@@ -369,6 +369,20 @@ class PipelineModel:
         """Truth, ideal IMU and map (memoised per process)."""
         return _shared(self.scenario)
 
+    def crlb_metrics(self) -> dict[str, float]:
+        """The flight's posterior Cramér-Rao bound (:mod:`magnav_ins.studies.crlb`): ``crlb_rms_horizontal_m`` and
+        ``crlb_final_horizontal_m`` for ``metrics.json``; empty without readings or with a non-grid map."""
+        from .crlb import crlb_metrics, flight_crlb
+
+        sc = self.scenario
+        sh = self.shared()
+        if sc.sensor is None or sh["map"] is None or not hasattr(sh["map"], "gradient_ne"):
+            return {}
+        if sc.sensor.source != "simulated":
+            return {}  # real readings: the bound of the simulated readings would not be theirs
+        t, sig = flight_crlb(sc, sh["truth"], sh["imu"], sh["map"])
+        return crlb_metrics(t, sig)
+
     def run(self, seed: np.random.SeedSequence) -> RunOutput:
         from ..ins import imu_models
 
@@ -536,4 +550,5 @@ def run_estimator(
         np.array([f.lon for f in fixes], float),
         np.array([np.asarray(f.cov_ne, float) for f in fixes], float).reshape(-1, 2, 2),
         np.array([f.available for f in fixes], bool),
+        tuple(f.reason for f in fixes),
     )

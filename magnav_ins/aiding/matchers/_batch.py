@@ -84,20 +84,33 @@ def track_window(
     frame = make_frame(fmap, float(lat[-1]), float(lon[-1]))
     dn, de = frame.to_ne(lat, lon)
     x_ins = np.column_stack([dn, de])
-    me = resolve_map_error(fmap, map_sigma, correlation_m)
-    sig_m = np.asarray(me.sigma_at(lat, lon), float)
-    sig_m = np.where(np.isfinite(sig_m), sig_m, 0.0)
-    ds = np.hypot(*np.diff(x_ins, axis=0).T)
-    ds_med = float(np.median(ds)) if ds.size else 0.0
-    ell = float(me.correlation_m)
-    b = float(np.clip(ell / ds_med, 1.0, T)) if (np.isfinite(ell) and ell > 0 and ds_med > 0) else 1.0
-    s2 = float(rd.sigma) ** 2 + b * sig_m**2
+    s2, source = reading_variance(fmap, lat, lon, x_ins, float(rd.sigma), map_sigma, correlation_m)
     sig_ins = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
     growth = np.maximum(np.diff(sig_ins), 0.0)
     rel = np.append(np.cumsum(growth[::-1])[::-1], 0.0)
-    return TrackWindow(
-        frame, np.asarray(rd.t, float)[sl], z, x_ins, cov, half, good, s2, rel, float(rd.sigma), me.source
-    )
+    return TrackWindow(frame, np.asarray(rd.t, float)[sl], z, x_ins, cov, half, good, s2, rel, float(rd.sigma), source)
+
+
+def reading_variance(
+    fmap: FieldMap,
+    lat: FloatArray,
+    lon: FloatArray,
+    x_ne: FloatArray,
+    sensor_sigma: float,
+    map_sigma: float | None = None,
+    correlation_m: float | None = None,
+) -> tuple[FloatArray, str]:
+    """Per-reading variance ``sigma^2 + b sigma_map^2`` (map unit^2, (T,)) of readings at ``lat``, ``lon`` (rad; their
+    frame positions ``x_ne`` (T, 2) m give the along-track spacing) and where the map error came from (module
+    docstring; ``map_error.resolve_map_error`` with the matcher's ``map_sigma`` / ``correlation_m`` options)."""
+    me = resolve_map_error(fmap, map_sigma, correlation_m)
+    sig_m = np.asarray(me.sigma_at(lat, lon), float)
+    sig_m = np.where(np.isfinite(sig_m), sig_m, 0.0)
+    ds = np.hypot(*np.diff(np.asarray(x_ne, float), axis=0).T)
+    ds_med = float(np.median(ds)) if ds.size else 0.0
+    ell = float(me.correlation_m)
+    b = float(np.clip(ell / ds_med, 1.0, len(sig_m))) if (np.isfinite(ell) and ell > 0 and ds_med > 0) else 1.0
+    return float(sensor_sigma) ** 2 + b * sig_m**2, me.source
 
 
 def adds_information(cov_fix: FloatArray, cov_prior: FloatArray, margin: float = 1.0) -> bool:
