@@ -47,7 +47,8 @@ class EstimatorOutput:
 
     ``lat``, ``lon`` (N,) rad; ``cov_ne`` (N,2,2) m^2 horizontal covariance or None (free inertial without a
     filter). Fixes: ``fix_t`` (K,) s, ``fix_lat``, ``fix_lon`` (K,) rad (NaN for "no fix"), ``fix_cov_ne``
-    (K,2,2) m^2, ``fix_available`` (K,) bool; one entry per fix attempt.
+    (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the reason of each "no fix" ("" for a fix); one
+    entry per fix attempt.
     """
 
     name: str
@@ -61,6 +62,7 @@ class EstimatorOutput:
     fix_lon: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     fix_cov_ne: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2, 2)))
     fix_available: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    fix_reason: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -104,6 +106,13 @@ class EstimatorSummary:
     fix_sigma_e: NDArray[np.float32]
     fix_corr_ne: NDArray[np.float32]
     fix_available: NDArray[np.bool_]
+    no_fix_reasons: dict[str, int] = field(default_factory=dict)
+
+
+def reason_category(reason: str) -> str:
+    """The class of a "no fix" reason: the text before its first colon (``"flat map"``, ``"diverged"``,
+    ``"off the map"``, ...), as :func:`magnav_ins.aiding.matchers.metrics.no_fix_reasons` counts them."""
+    return reason.split(":", 1)[0].strip() or "unspecified"
 
 
 @dataclass
@@ -172,9 +181,14 @@ def summarise_run(
             divergent=M.is_divergent(e, e_free),
         )
         sn, se, rho = _cov_parts(cov, len(sel))
+        reasons: dict[str, int] = {}
+        for a, why in zip(fix_avail, est.fix_reason, strict=False):
+            if not a:
+                c = reason_category(why)
+                reasons[c] = reasons.get(c, 0) + 1
         res[est.name] = EstimatorSummary(
             est.matcher, est.fusion, rm, dn.astype(np.float32), de.astype(np.float32), sn, se, rho,
-            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail,
+            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail, reasons,
         )  # fmt: skip
     return RunSummary(index, t, lat_t, lon_t, res, wall_s)
 
@@ -283,6 +297,11 @@ def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: s
     for nm in names:
         es = [s.estimators[nm] for s in summaries]
         entry = M.aggregate([e.metrics for e in es], es[0].matcher, es[0].fusion)
+        counts: dict[str, int] = {}
+        for e in es:  # how often each "no fix" reason occurred, over all runs (issue 16)
+            for c, k in e.no_fix_reasons.items():
+                counts[c] = counts.get(c, 0) + k
+        entry["no_fix_reasons"] = dict(sorted(counts.items()))
         if nm == FREE_INERTIAL:
             doc["free_inertial"] = entry
         else:
@@ -401,6 +420,9 @@ def run_study(
     t0 = time.perf_counter()
     summaries = execute(model, runs, seed, jobs, scheduler, quiet, max_samples)
     doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name)
+    bound = getattr(model, "crlb_metrics", None)
+    if callable(bound):  # the flight's posterior CRLB, the limit column of the comparisons (studies.crlb)
+        doc.update(bound())
     if out_dir is not None:
         write_outputs(out_dir, summaries, doc, plots=plots, fmap=fmap, command=command)
     return doc
