@@ -124,6 +124,7 @@ class Pipeline:
         self._t_imu = float(fuser.estimate().nav.t)
         self.fixes: list[Fix] = []
         self.innovations: list[Innovation] = []
+        self.external_innovations: list[Innovation] = []  # of push_fix (GNSS, surveyed points)
 
     # ---------------------------------------------------------------------------------------------- online
     def estimate(self) -> NavEstimate:
@@ -162,7 +163,31 @@ class Pipeline:
         self._on_reading(float(t), v)
         return self.fixes[-1] if len(self.fixes) > n else None
 
+    def push_fix(self, fix: Fix, *, height_m: float | None = None, height_sigma_m: float | None = None) -> Innovation:
+        """An external position fix (GNSS, a surveyed point) at ``fix.t`` (at or before the IMU time: the fuser
+        applies a late one at its own time). It goes to ``fuser.correct`` like a matcher's fix, the stored matcher
+        window is shifted by the correction (as for a matcher fix), and its innovation is kept in
+        ``external_innovations`` (``fixes`` and ``innovations`` hold the matcher's only). Returns the innovation."""
+        before = self.fuser.estimate()
+        if height_m is not None:
+            inn = self.fuser.correct(fix, height_m=float(height_m), height_sigma_m=height_sigma_m)
+        else:
+            inn = self.fuser.correct(fix)
+        self.external_innovations.append(inn)
+        if inn.accepted and abs(before.nav.t - fix.t) <= 1e-6:
+            self._shift_window(before)
+        return inn
+
     # ------------------------------------------------------------------------------------------ internals
+    def _shift_window(self, before: NavEstimate) -> None:
+        """Shift the stored window positions by the correction the fuser applied since ``before``."""
+        after = self.fuser.estimate().nav
+        dn, de = latlon_to_meters(after.lat - before.nav.lat, after.lon - before.nav.lon, before.nav.lat)
+        dh = after.h - before.nav.h
+        for x in self._stored:
+            dlat, dlon = meters_to_latlon(float(dn), float(de), x.lat, x.h)
+            x.lat, x.lon, x.h = x.lat + float(dlat), x.lon + float(dlon), x.h + dh
+
     def _propagate_to(self, t_c: float, w: FloatArray, f: FloatArray) -> None:
         """The first part of a straddling sample, up to the event time ``t_c``."""
         self.fuser.propagate(ImuBatch(np.array([t_c]), w[None, :], f[None, :]))
