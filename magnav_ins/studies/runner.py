@@ -18,6 +18,7 @@ PNG figures.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -238,20 +239,65 @@ def execute(
                 results[i] = _run_task(model, i, ss, max_samples)
                 bar.update(1)
         else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
-                try:
-                    for fut in as_completed(futs):
-                        results[futs[fut]] = fut.result()
-                        bar.update(1)
-                except BrokenProcessPool as exc:
-                    raise RuntimeError(
-                        "a worker process died during a Monte Carlo run (killed by the OS, e.g. out of memory); "
-                        "nothing was written - retry with fewer --jobs"
-                    ) from exc
+            _execute_pool(model, seeds, jobs, max_samples, results, bar.update)
     finally:
         bar.close()
     return [r for r in results if r is not None]
+
+
+def _execute_pool(
+    model: StudyModel,
+    seeds: Sequence[np.random.SeedSequence],
+    jobs: int,
+    max_samples: int,
+    results: list[RunSummary | None],
+    progress: Callable[[int], Any],
+) -> None:
+    """The runs in ``jobs`` local worker processes. Workers ignore SIGINT and die with their parent
+    (:func:`magnav_ins.core.signals.worker_init`); on any exception here (Ctrl-C, SIGTERM, a failed run) the queued
+    runs are cancelled and the workers are terminated at once, not waited for: nothing is left running."""
+    import os
+
+    from ..core.signals import worker_init
+
+    pool = ProcessPoolExecutor(max_workers=jobs, initializer=worker_init, initargs=(os.getpid(),))
+    try:
+        futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
+        for fut in as_completed(futs):
+            results[futs[fut]] = fut.result()
+            progress(1)
+    except BrokenProcessPool as exc:
+        _stop_pool(pool)
+        raise RuntimeError(
+            "a worker process died during a Monte Carlo run (killed by the OS, e.g. out of memory); "
+            "nothing was written - retry with fewer --jobs"
+        ) from exc
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+#: seconds given to closing the connection to a Dask scheduler
+_DASK_CLOSE_S = 3.0
+#: seconds a terminated worker gets to exit before it is killed
+_WORKER_STOP_S = 2.0
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what is queued and end every worker now: SIGTERM, then SIGKILL after ``_WORKER_STOP_S``.
+    (:class:`ProcessPoolExecutor` has no public way to stop running tasks; its ``_processes`` map is read once.)"""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + _WORKER_STOP_S
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)
 
 
 def _execute_dask(
@@ -270,6 +316,7 @@ def _execute_dask(
         client = Client(scheduler) if own else scheduler
     except OSError as exc:
         raise ConfigError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})") from None
+    futs: list[Any] = []
     try:
         [model_f] = client.scatter([model], broadcast=True)
         futs = [client.submit(_run_task, model_f, i, ss, max_samples, pure=False) for i, ss in enumerate(seeds)]
@@ -277,9 +324,17 @@ def _execute_dask(
         for fut in dask_completed(futs):
             results[index[fut.key]] = fut.result()
             progress(1)
+    except BaseException:
+        # Ctrl-C, SIGTERM or a failed run: withdraw every run from the cluster (queued ones never start; a running
+        # one finishes on its worker and is discarded), so the cluster is free for the next study
+        if futs:
+            with contextlib.suppress(Exception):
+                client.cancel(futs, force=True)
+        raise
     finally:
         if own:
-            client.close()
+            with contextlib.suppress(Exception):
+                client.close(timeout=_DASK_CLOSE_S)
 
 
 # ------------------------------------------------------------------------------------------------ aggregation
