@@ -22,15 +22,14 @@ Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
   ``divergence_rate`` is the fraction of runs that diverge.
 
 Besides DESIGN.md's keys each entry holds ``fix_error_bins`` (the four bins above), ``fix_within_3m_fraction``,
-``fix_attempts``, ``fixes_issued``, ``no_fix_reasons`` (the matchers' reasons for each "no fix", counted over runs,
-numbers removed so that alike reasons group: :func:`reason_key`) and ``non_finite_fraction`` (share of error samples
-that were not finite: an estimator that blew up). Undefined values (no fixes, no covariance) are ``null``.
+``fix_attempts``, ``fixes_issued``, ``no_fix_reasons`` (how often each class of "no fix" reason occurred over all
+runs, the text before the reason's first colon: "flat map", "diverged", ...; added by :mod:`.runner`) and
+``non_finite_fraction`` (share of error samples that were not finite: an
+estimator that blew up). Undefined values (no fixes, no covariance) are ``null``.
 """
 
 from __future__ import annotations
 
-import re
-from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -115,31 +114,16 @@ def fix_error_bins(fix_errors_m: ArrayLike) -> dict[str, float]:
     return {n: float(c) / e.size for n, c in zip(FIX_BIN_NAMES, counts, strict=True)}
 
 
-def reason_key(reason: str) -> str:
-    """A "no fix" reason without its numbers, so that alike reasons count together ("ratio 1.3 < 2" and "ratio 1.7
-    < 2" are one); the part before a colon when there is one (the same grouping as the replay summary)."""
-    key = reason.split(":")[0].strip() if ":" in reason else reason.strip()
-    key = re.sub(r"[-+]?\d+(\.\d*)?([eE][-+]?\d+)?", "#", key)
-    return key or "(no reason given)"
-
-
-def count_reasons(reasons: list[str] | tuple[str, ...]) -> dict[str, int]:
-    """``{reason_key: count}``, most frequent first."""
-    return dict(Counter(reason_key(r) for r in reasons).most_common())
-
-
 @dataclass
 class RunMetrics:
     """One estimator in one run: the error series (m) on the study's common time base, the filter's horizontal
-    NEES series (NaN without covariance), fix errors (m) of issued fixes, fix attempts, the divergence flag and the
-    counted reasons of its "no fix"es (:func:`count_reasons`)."""
+    NEES series (NaN without covariance), fix errors (m) of issued fixes, fix attempts, and the divergence flag."""
 
     e: NDArray[np.float64]
     nees: NDArray[np.float64]
     fix_errors_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     fix_attempts: int = 0
     divergent: bool = False
-    no_fix_reasons: dict[str, int] = field(default_factory=dict)
 
 
 def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[str, Any]:
@@ -154,9 +138,6 @@ def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[
     issued = int(np.isfinite(fix_e).sum())
     bins = fix_error_bins(fix_e)
     final = E[:, -1]
-    reasons: Counter[str] = Counter()
-    for r in runs:
-        reasons.update(r.no_fix_reasons)
     out: dict[str, Any] = {
         "matcher": matcher,
         "fusion": fusion,
@@ -168,7 +149,6 @@ def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[
         "availability": (issued / attempts) if attempts else None,
         "fix_attempts": int(attempts),
         "fixes_issued": issued,
-        "no_fix_reasons": dict(reasons.most_common()),
         "nees_mean": _f(np.mean(nees)) if nees.size else None,
         "fix_error_bins": {k: _f(v) for k, v in bins.items()},
         "fix_within_3m_fraction": _f(bins["lt_3m"]),

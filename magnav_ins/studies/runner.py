@@ -49,8 +49,8 @@ class EstimatorOutput:
 
     ``lat``, ``lon`` (N,) rad; ``cov_ne`` (N,2,2) m^2 horizontal covariance or None (free inertial without a
     filter). Fixes: ``fix_t`` (K,) s, ``fix_lat``, ``fix_lon`` (K,) rad (NaN for "no fix"), ``fix_cov_ne``
-    (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the matcher's reason of each "no fix" (empty
-    tuple: not recorded); one entry per fix attempt.
+    (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the reason of each "no fix" ("" for a fix); one
+    entry per fix attempt.
     """
 
     name: str
@@ -108,6 +108,13 @@ class EstimatorSummary:
     fix_sigma_e: NDArray[np.float32]
     fix_corr_ne: NDArray[np.float32]
     fix_available: NDArray[np.bool_]
+    no_fix_reasons: dict[str, int] = field(default_factory=dict)
+
+
+def reason_category(reason: str) -> str:
+    """The class of a "no fix" reason: the text before its first colon (``"flat map"``, ``"diverged"``,
+    ``"off the map"``, ...), as :func:`magnav_ins.aiding.matchers.metrics.no_fix_reasons` counts them."""
+    return reason.split(":", 1)[0].strip() or "unspecified"
 
 
 @dataclass
@@ -174,23 +181,18 @@ def summarise_run(
             fix_errors_m=np.hypot(fdn, fde)[fix_avail] if len(fix_t) else np.zeros(0),
             fix_attempts=len(fix_t),
             divergent=M.is_divergent(e, e_free),
-            no_fix_reasons=_no_fix_reasons(est),
         )
         sn, se, rho = _cov_parts(cov, len(sel))
+        reasons: dict[str, int] = {}
+        for a, why in zip(fix_avail, est.fix_reason, strict=False):
+            if not a:
+                c = reason_category(why)
+                reasons[c] = reasons.get(c, 0) + 1
         res[est.name] = EstimatorSummary(
             est.matcher, est.fusion, rm, dn.astype(np.float32), de.astype(np.float32), sn, se, rho,
-            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail,
+            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail, reasons,
         )  # fmt: skip
     return RunSummary(index, t, lat_t, lon_t, res, wall_s)
-
-
-def _no_fix_reasons(est: EstimatorOutput) -> dict[str, int]:
-    """Counted reasons of the estimator's "no fix"es (:func:`metrics.count_reasons`); without recorded reasons
-    they count as ``(no reason given)``."""
-    avail = np.asarray(est.fix_available, bool)
-    if len(est.fix_reason) == len(avail):
-        return M.count_reasons([r for r, ok in zip(est.fix_reason, avail, strict=True) if not ok])
-    return M.count_reasons([""] * int((~avail).sum()))
 
 
 def _run_task(model: StudyModel, index: int, seed: np.random.SeedSequence, max_samples: int) -> RunSummary:
@@ -351,7 +353,8 @@ def fix_warnings(doc: dict[str, Any]) -> list[str]:
                 "readings than the matcher's window): it ran unaided"
             )
         elif issued == 0:
-            why = "; ".join(f"{r} x{n}" for r, n in (m.get("no_fix_reasons") or {}).items()) or "no reason given"
+            counts = sorted((m.get("no_fix_reasons") or {}).items(), key=lambda rn: -rn[1])
+            why = "; ".join(f"{r} x{n}" for r, n in counts) or "no reason given"
             out.append(f"estimator {name!r}: 0 of {attempts} fix attempts gave a fix ({why}): it ran unaided")
     return out
 
@@ -373,6 +376,11 @@ def study_metrics(
     for nm in names:
         es = [s.estimators[nm] for s in summaries]
         entry = M.aggregate([e.metrics for e in es], es[0].matcher, es[0].fusion)
+        counts: dict[str, int] = {}
+        for e in es:  # how often each "no fix" reason occurred, over all runs (issue 16)
+            for c, k in e.no_fix_reasons.items():
+                counts[c] = counts.get(c, 0) + k
+        entry["no_fix_reasons"] = dict(sorted(counts.items()))
         if nm == FREE_INERTIAL:
             doc["free_inertial"] = entry
         else:
@@ -504,6 +512,9 @@ def run_study(
     t0 = time.perf_counter()
     summaries = execute(model, runs, seed, jobs, scheduler, quiet, max_samples)
     doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name, warnings)
+    bound = getattr(model, "crlb_metrics", None)
+    if callable(bound):  # the flight's posterior CRLB, the limit column of the comparisons (studies.crlb)
+        doc.update(bound())
     if out_dir is not None:
         write_outputs(out_dir, summaries, doc, plots=plots, fmap=fmap, command=command)
     return doc
