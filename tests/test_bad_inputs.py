@@ -102,6 +102,7 @@ def work(tmp_path, monkeypatch):
     (tmp_path / "points.csv").write_text("lat_deg,lon_deg\n-21.0,140.7\n")
     (tmp_path / "points_bad.csv").write_text("lat_deg,lon_deg\n-21.0,140.7\n210.0,140.7\n")
     (tmp_path / "full_gravity.toml").write_text(FULL_GRAVITY)
+    _utm_grid(tmp_path / "utm.nc")
     _full_gravity_map(tmp_path / "fullg.nc")
     for name, text in (
         ("rate_1e9.toml", TINY.replace("rate_hz = 10.0", "rate_hz = 1e9")),
@@ -127,6 +128,20 @@ def _full_gravity_map(path: Path) -> None:
     write_map(
         GridMap(lat, lon, values, kind=FieldKind.GRAVITY_DISTURBANCE_MGAL, frame="geodetic", altitude_m=500.0), path
     )
+
+
+def _utm_grid(path: Path) -> None:
+    """A grid in UTM zone 54S metres (dimensions y, x), as projected surveys are delivered."""
+    import xarray as xr
+
+    x, y = np.arange(500e3, 510e3, 500.0), np.arange(7.0e6, 7.01e6, 500.0)
+    attrs = {"units": "nT", "magnav_kind": "total_field_anomaly_nt"}
+    ds = xr.Dataset(
+        {"anomaly": (("y", "x"), np.zeros((y.size, x.size)), attrs)},
+        coords={"y": y, "x": x},
+        attrs={"geodetic_datum": "WGS84", "altitude_m": 100.0, "crs": "EPSG:32754"},
+    )
+    ds.to_netcdf(path)
 
 
 @dataclass(frozen=True)
@@ -265,6 +280,7 @@ CASES = [
     Case("map-info-missing", ("map", "info", "nope.nc"), ("nope.nc", "no such map file")),
     Case("map-info-junk", ("map", "info", "junk.bin"), ("junk.bin", "not a NetCDF file")),
     Case("map-info-empty", ("map", "info", "empty"), ("empty", "is empty")),
+    Case("map-info-utm", ("map", "info", "utm.nc"), ("utm.nc", "projected coordinates", "reproject")),
     Case("map-grid-junk", ("map", "grid", "junk.bin", "--spacing", "100", "--out", "g.nc"), ("junk.bin",), ("g.nc",)),
     Case("map-grid-empty", ("map", "grid", "empty", "--spacing", "100", "--out", "g.nc"), ("empty",), ("g.nc",)),
     Case(
@@ -382,3 +398,26 @@ def test_map_info_warns_about_an_implausible_map(work, capsys):
     [warning] = [ln for ln in captured.err.splitlines() if ln.strip()]
     assert warning.startswith("magnav-ins: warning: fullg.nc") and "full gravity" in warning
     assert "gravity_disturbance_mgal" in captured.out
+
+
+def test_antimeridian_wrapped_grid_is_read(work, capsys):
+    """A longitude axis that wraps at 180 deg (..., 179.5, -180, ...) is made continuous, not refused ("flip the
+    grid"): values at points on both sides are the file's own node values."""
+    import pandas as pd
+    import xarray as xr
+
+    lon = np.r_[np.arange(170.0, 180.0, 0.5), np.arange(-180.0, -170.0, 0.5)]
+    lat = np.arange(-20.0, -10.0, 0.5)
+    v = np.random.default_rng(3).normal(0.0, 100.0, (lat.size, lon.size))
+    attrs = {"units": "nT", "magnav_kind": "total_field_anomaly_nt"}
+    xr.Dataset(
+        {"anomaly": (("lat", "lon"), v, attrs)},
+        coords={"lat": lat, "lon": lon},
+        attrs={"geodetic_datum": "WGS84", "altitude_m": 1000.0},
+    ).to_netcdf(work / "wrapped.nc")
+    (work / "p.csv").write_text("lat_deg,lon_deg\n-15.0,179.5\n-15.0,-180.0\n-15.0,-175.0\n")
+    assert main(["map", "sample", "wrapped.nc", "--points", "p.csv", "--out", "s.csv"]) == 0
+    got = pd.read_csv(work / "s.csv")["value"].to_numpy()
+    row = int(np.flatnonzero(lat == -15.0)[0])
+    want = [v[row, int(np.flatnonzero(lon == x)[0])] for x in (179.5, -180.0, -175.0)]
+    np.testing.assert_allclose(got, want, rtol=1e-9)
