@@ -336,6 +336,7 @@ CASES = [
     # ---- replay (generic rows only; its own messages are tested in tests/test_replay.py)
     Case("replay-missing", ("replay", "nope.ulg", "--map", MAP), ("nope.ulg",)),
     Case("replay-junk", ("replay", "junk.bin", "--map", MAP, "--out", "r.csv"), ("junk.bin",), ("r.csv",)),
+    Case("replay-out-folder", ("replay", "junk.bin", "--map", MAP, "--out", "adir"), ("--out adir", "is a folder")),
 ]
 
 
