@@ -166,6 +166,7 @@ CASES = [
     Case("run-rate-1e9", ("run", "rate_1e9.toml", "--out", "o"), ("line 15", "'imu.rate_hz'", "[1, 2000]"), ("o",)),
     Case("run-rate-1e-3", ("run", "rate_1e-3.toml", "--out", "o"), ("line 15", "'imu.rate_hz'", "range"), ("o",)),
     Case("run-runs-0", ("run", "tiny.toml", "--runs", "0", "--out", "o"), ("--runs",), ("o",)),
+    Case("run-runs-1e8", ("run", "tiny.toml", "--runs", "100000000", "--out", "o"), ("--runs", "100000]"), ("o",)),
     Case("run-jobs-0", ("run", "tiny.toml", "--jobs", "0", "--out", "o"), ("--jobs",), ("o",)),
     Case("run-duration", ("run", "tiny.toml", "--duration", "-5", "--out", "o"), ("--duration",), ("o",)),
     Case(

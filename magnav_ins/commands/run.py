@@ -83,7 +83,7 @@ def _coverage_warnings(sc, truth, fmap) -> list[str]:  # noqa: ANN001
 def handle(args: argparse.Namespace) -> int:
     from ..studies import reports, runner
     from ..studies.model import PipelineModel
-    from ..studies.scenario import load_scenario
+    from ..studies.scenario import MAX_RUNS, load_scenario
 
     sc = load_scenario(args.scenario)
     if args.duration is not None:
@@ -92,8 +92,8 @@ def handle(args: argparse.Namespace) -> int:
         sc = dataclasses.replace(sc, trajectory=dataclasses.replace(sc.trajectory, duration_s=args.duration))
     runs = sc.runs if args.runs is None else args.runs
     seed = sc.seed if args.seed is None else args.seed
-    if runs < 1:
-        raise ConfigError(f"--runs must be >= 1, got {runs}")
+    if not 1 <= runs <= MAX_RUNS:
+        raise ConfigError(f"--runs must be in [1, {MAX_RUNS}], got {runs}")
     if seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {seed}")
     if args.jobs < 1:
