@@ -28,6 +28,8 @@ SCENARIOS = ("storms_hallway", "storms_hallway_turn")
 STORMS_BOUND_M = {"storms_hallway": 0.4, "storms_hallway_turn": 0.2}
 #: "once the initial positioning error is resolved": statistics from this time on as well (s)
 RESOLVED_S = 10.0
+#: a run has lost the vehicle when its error exceeds this after RESOLVED_S (m; wider than the half hallway)
+LOST_M = 1.5
 
 
 def fix_nees(ds: Any, name: str) -> tuple[float | None, float | None]:
@@ -45,11 +47,22 @@ def fix_nees(ds: Any, name: str) -> tuple[float | None, float | None]:
     return (float(q.mean()), float(np.median(q))) if q.size else (None, None)
 
 
-def ensemble_rms(ds: Any, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Time (s) and the ensemble RMS over runs of the horizontal error (m) of estimator ``name``."""
+def ensemble_rms(ds: Any, name: str, kept_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Time (s) and the ensemble RMS over runs of the horizontal error (m) of estimator ``name`` (``kept_only``:
+    over the runs that never lose the vehicle, :func:`lost_runs`)."""
     e = ds.sel(estimator=name)
     h2 = np.asarray(e["err_north_m"], float) ** 2 + np.asarray(e["err_east_m"], float) ** 2
+    if kept_only:
+        h2 = h2[~lost_runs(ds, name)]
     return np.asarray(ds["time"], float), np.sqrt(np.nanmean(h2, axis=0))
+
+
+def lost_runs(ds: Any, name: str) -> np.ndarray:
+    """Per run: True when its horizontal error exceeds ``LOST_M`` at some time after ``RESOLVED_S``."""
+    e = ds.sel(estimator=name)
+    h = np.hypot(np.asarray(e["err_north_m"], float), np.asarray(e["err_east_m"], float))
+    t = np.asarray(ds["time"], float)
+    return np.nanmax(h[:, t >= RESOLVED_S], axis=1) > LOST_M
 
 
 def first_fix_s(ds: Any, name: str) -> float | None:
@@ -67,6 +80,10 @@ def rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
         resolved = ens[t >= RESOLVED_S]
         fn_mean, fn_med = fix_nees(ds, name)
         bound = STORMS_BOUND_M[stem]
+        lost = lost_runs(ds, name)
+        tk, ens_k = ensemble_rms(ds, name, kept_only=True)
+        ek = ds.sel(estimator=name)
+        h2k = (np.asarray(ek["err_north_m"], float) ** 2 + np.asarray(ek["err_east_m"], float) ** 2)[~lost]
         out.append(
             {
                 "scenario": stem,
@@ -76,6 +93,11 @@ def rows(stem: str, doc: dict[str, Any], ds: Any) -> list[dict[str, Any]]:
                 "ensemble_rms_max_after_first_fix_m": float(after.max()) if after.size else None,
                 "ensemble_rms_max_after_10s_m": float(resolved.max()) if resolved.size else None,
                 "ensemble_rms_median_after_10s_m": float(np.median(resolved)) if resolved.size else None,
+                "runs_lost": int(lost.sum()),
+                "rms_after_first_fix_kept_m": float(np.sqrt(np.nanmean(h2k[:, tk >= t0])))
+                if t0 is not None and h2k.size
+                else None,
+                "ensemble_rms_max_after_10s_kept_m": float(ens_k[tk >= RESOLVED_S].max()) if h2k.size else None,
                 "rms_horizontal_m": m["rms_horizontal_m"],
                 "filter_nees": m["nees_mean"],
                 "fix_nees_mean": fn_mean,
@@ -99,9 +121,12 @@ def plot(results: dict[str, tuple[dict[str, Any], Any]], path: Path) -> None:
 
     fig, axes = plt.subplots(1, len(results), figsize=(6.0 * len(results), 4.0), sharey=True, squeeze=False)
     for ax, (stem, (doc, ds)) in zip(axes[0], results.items(), strict=True):
-        for name in doc["estimators"]:
+        for k, name in enumerate(doc["estimators"]):
             t, ens = ensemble_rms(ds, name)
-            ax.plot(t, ens, label=name)
+            ax.plot(t, ens, color=f"C{k}", label=f"{name}, all runs")
+            t, ens = ensemble_rms(ds, name, kept_only=True)
+            n_lost = int(lost_runs(ds, name).sum())
+            ax.plot(t, ens, color=f"C{k}", ls="--", label=f"{name}, the {doc['runs'] - n_lost} runs that keep track")
         ax.axhline(STORMS_BOUND_M[stem], color="k", ls=":", lw=1, label=f"Storms: < {STORMS_BOUND_M[stem]} m")
         ax.set_title(f"{stem} ({doc['runs']} runs)" + (" - Fig. 4.13 analogue" if "turn" in stem else " - Fig. 4.12"))
         ax.set_xlabel("time (s)")
@@ -152,13 +177,15 @@ def main(argv: list[str] | None = None) -> int:
 
     print(
         "| scenario | estimator | RMS from the first fix | ensemble RMS max from the first fix / from 10 s "
+        "| runs lost (> 1.5 m after 10 s) | RMS from the first fix, runs that keep track "
         "| filter NEES | fix NEES mean / median | availability | Storms |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---|")
     for r in table:
         print(
             f"| {r['scenario']} | {r['estimator']} | {f(r['rms_after_first_fix_m'])} m "
             f"| {f(r['ensemble_rms_max_after_first_fix_m'], 2)} / {f(r['ensemble_rms_max_after_10s_m'], 2)} m "
+            f"| {r['runs_lost']} of {r['runs']} | {f(r['rms_after_first_fix_kept_m'])} m "
             f"| {f(r['filter_nees'], 2)} | {f(r['fix_nees_mean'], 2)} / {f(r['fix_nees_median'], 2)} "
             f"| {100 * (r['availability'] or 0):.0f} % | < {r['storms_bound_m']} m |"
         )

@@ -15,6 +15,8 @@ readings are gridded at the leader's *estimated* positions with ``griddata`` for
 * :func:`amalgamate` keeps, per node, the contribution with the smaller variance of the mean (or more readings).
 * :func:`leader_follower_map` grids scattered readings (``scipy.interpolate.griddata``, linear) and blanks nodes
   farther than ``max_distance_m`` from every reading (the convex hull of an L-shaped route covers the empty corner).
+* :func:`path_map` grids readings along a path (a walk) by kernel regression, for maps of a route rather than an
+  area (the Kok walks, ``bench/kok_walks.py``).
 """
 
 from __future__ import annotations
@@ -366,4 +368,74 @@ def leader_follower_map(
         origin=origin,
         name=name,
         metadata={"source": "leader readings gridded (griddata linear)", "readings": int(n.size)},
+    )
+
+
+def path_map(
+    northing_m: ArrayLike,
+    easting_m: ArrayLike,
+    values: ArrayLike,
+    *,
+    kind: FieldKind | str,
+    spacing_m: float,
+    origin: tuple[float, float, float],
+    length_scale_m: float,
+    max_distance_m: float,
+    name: str = "path map",
+) -> GridMap:
+    """Grid readings taken along a path (a walk, a drive: a one-dimensional set of points) into a local-frame
+    :class:`GridMap` by Gaussian kernel regression (Nadaraya-Watson): each node is the mean of the readings within
+    ``3 length_scale_m`` weighted by ``exp(-d^2 / (2 length_scale_m^2))``; nodes farther than ``max_distance_m``
+    from every reading are NaN. Unlike triangulation (:func:`leader_follower_map`), which joins distant parts of a
+    looping path across its interior, this only spreads each reading over its neighbourhood: across the path the
+    map is the nearby readings' mean (the field there was never sampled).
+
+    ``northing_m``, ``easting_m`` (N,) m in the local plane about ``origin`` (rad, rad, m); ``values`` (N,) or
+    (N, 3) in ``kind``'s unit."""
+    from scipy.spatial import cKDTree as _Tree
+
+    kind = FieldKind(kind)
+    n = np.ravel(np.asarray(northing_m, float))
+    e = np.ravel(np.asarray(easting_m, float))
+    v = np.asarray(values, float).reshape(n.size, -1)
+    if v.shape[1] != kind.components:
+        raise InputError(f"path_map: {v.shape[1]} component(s) per reading, kind {kind.value} needs {kind.components}")
+    for key, x in (("spacing_m", spacing_m), ("length_scale_m", length_scale_m), ("max_distance_m", max_distance_m)):
+        if not (np.isfinite(x) and x > 0):
+            raise InputError(f"path_map: {key} must be > 0, got {x!r}")
+    ok = np.isfinite(n) & np.isfinite(e) & np.all(np.isfinite(v), axis=1)
+    if ok.sum() < 2:
+        raise InputError(f"path_map: need at least 2 finite readings, got {int(ok.sum())}")
+    n, e, v = n[ok], e[ok], v[ok]
+    d = float(spacing_m)
+    pad = float(max_distance_m)
+    ax_n = np.arange(np.floor((n.min() - pad) / d) * d, n.max() + pad + d, d)
+    ax_e = np.arange(np.floor((e.min() - pad) / d) * d, e.max() + pad + d, d)
+    nn, ee = np.meshgrid(ax_n, ax_e, indexing="ij")
+    nodes = np.column_stack([nn.ravel(), ee.ravel()])
+    tree = _Tree(np.column_stack([n, e]))
+    dist, _ = tree.query(nodes, k=1)
+    out = np.full((nodes.shape[0], v.shape[1]), np.nan)
+    near = np.flatnonzero(dist <= max_distance_m)
+    radius = max(3.0 * float(length_scale_m), float(max_distance_m))
+    for k, idx in zip(near, tree.query_ball_point(nodes[near], radius), strict=True):
+        j = np.asarray(idx, dtype=np.int64)
+        w = np.exp(-0.5 * ((n[j] - nodes[k, 0]) ** 2 + (e[j] - nodes[k, 1]) ** 2) / length_scale_m**2)
+        if w.sum() > 0:
+            out[k] = w @ v[j] / w.sum()
+    grid = out.reshape(nn.shape + (v.shape[1],))
+    return GridMap(
+        ax_n,
+        ax_e,
+        grid[:, :, 0] if kind.components == 1 else grid,
+        kind=kind,
+        frame="local",
+        altitude_m=origin[2],
+        origin=origin,
+        name=name,
+        metadata={
+            "source": f"readings along a path, Gaussian kernel {length_scale_m:g} m",
+            "readings": int(n.size),
+            "max_distance_m": float(max_distance_m),
+        },
     )

@@ -27,7 +27,9 @@ What :meth:`CvKalmanFuser.estimate` reports: the horizontal position and velocit
 ``LAYOUT_15`` slots (``pos`` north/east, ``vel`` north/east); the height is the held height (``altitude_hold``,
 else the initial height) with zero vertical velocity; the attitude is level with the heading of the velocity (or the
 gyro-integrated heading under ``turn_command``). States the filter does not model (down position and velocity,
-attitude, biases) carry NaN variances: not estimated.
+attitude, biases) carry NaN variances: not estimated. The protection level ``hpl_m`` is the fault-free one of
+:func:`~magnav_ins.aiding.fusion.integrity.hpl_fault_free` (``K sigma_max`` at the default integrity risk): Storms'
+filter has no fault detection, so there is no margin for undetected faults in it.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from ...core.frames import WGS84_OMEGA_E, euler_from_q_nb, latlon_to_meters, met
 from ...core.types import LAYOUT_15, Fix, ImuBatch, Innovation, NavEstimate, NavState
 from ..gating import ChiSquareGate
 from .common import ImuNoise, fix_problem, rejected
+from .integrity import hpl_fault_free
 
 FloatArray = NDArray[np.float64]
 
@@ -189,4 +192,4 @@ class CvKalmanFuser:
         p, w = LAYOUT_15["pos"].start, LAYOUT_15["vel"].start
         idx = [p, p + 1, w, w + 1]
         P15[np.ix_(idx, idx)] = self.P
-        return NavEstimate(nav, P15)
+        return NavEstimate(nav, P15, hpl_m=hpl_fault_free(self.P[:2, :2]))
