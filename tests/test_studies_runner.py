@@ -29,7 +29,7 @@ DESIGN_KEYS = {
     "availability",
     "nees_mean",
 }
-EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons"}
+EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons", "rms_after_first_fix_m"}
 
 
 @dataclass(frozen=True)

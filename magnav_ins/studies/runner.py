@@ -50,7 +50,7 @@ class EstimatorOutput:
     ``lat``, ``lon`` (N,) rad; ``cov_ne`` (N,2,2) m^2 horizontal covariance or None (free inertial without a
     filter). Fixes: ``fix_t`` (K,) s, ``fix_lat``, ``fix_lon`` (K,) rad (NaN for "no fix"), ``fix_cov_ne``
     (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the reason of each "no fix" ("" for a fix); one
-    entry per fix attempt.
+    entry per fix attempt. ``fix_accepted`` (K,) bool: whether the fuser applied each fix (empty when unknown).
     """
 
     name: str
@@ -65,6 +65,7 @@ class EstimatorOutput:
     fix_cov_ne: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2, 2)))
     fix_available: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     fix_reason: tuple[str, ...] = ()
+    fix_accepted: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass(frozen=True)
@@ -181,6 +182,7 @@ def summarise_run(
             fix_errors_m=np.hypot(fdn, fde)[fix_avail] if len(fix_t) else np.zeros(0),
             fix_attempts=len(fix_t),
             divergent=M.is_divergent(e, e_free),
+            first_fix_index=M.first_fix_index(t, fix_t, np.asarray(est.fix_accepted, bool)),
         )
         sn, se, rho = _cov_parts(cov, len(sel))
         reasons: dict[str, int] = {}

@@ -29,7 +29,9 @@ from ..core.types import FieldKind
 
 #: IMU grades understood by ``ins.imu_models.get_grade`` (Storms Table 2.2; Wang Table 1)
 IMU_GRADES = ("consumer", "commercial", "tactical", "navigation", "precision", "quantum")
-TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file", "lawnmower")
+TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file", "lawnmower", "ground_path")
+#: keys of a ground path's ``wander`` table (:class:`magnav_ins.ins.ground_path.Wander`)
+WANDER_KEYS = ("accel_sigma_mps2", "cross_gain", "along_gain", "max_offset_m")
 SENSOR_KINDS = {
     "gravimeter": FieldKind.GRAVITY_DISTURBANCE_MGAL,
     "scalar_magnetometer": FieldKind.TOTAL_FIELD_ANOMALY_NT,
@@ -437,7 +439,9 @@ class TrajectoryConfig:
     ``kind``: ``great_circle`` (``start``, ``end`` [lat, lon] deg, ``altitude_m``, ``speed_mps``), ``waypoints``
     (``points`` [[lat, lon], ...] deg, ``altitude_m``, ``speed_mps``), ``survey_line`` (``survey`` path or
     ``builtin:NAME``, ``line`` id or list of ids, ``speed_mps``; altitude from the survey), ``file`` (``path``
-    CSV). ``duration_s`` (optional) truncates the trajectory. ``lines`` holds every line id of a ``survey_line``
+    CSV), ``ground_path`` (``origin`` [lat, lon] deg, ``points_m`` [[north, east], ...] m about it,
+    ``speed_mps``, optional ``altitude_m``, ``corner_radius_m`` and ``wander`` = Storms' random perturbation per run,
+    :mod:`magnav_ins.ins.ground_path`). ``duration_s`` (optional) truncates the trajectory. ``lines`` holds every line id of a ``survey_line``
     flight in flying order (``line`` is the first); several lines are flown one after the other, as a survey
     aircraft flies adjacent lines (:func:`magnav_ins.studies.model.survey_line_points`). A ``survey_line`` may
     instead (or as well) name a ``line_type`` (e.g. ``"TIE"``): every line of that type, in id order (with ``line``:
@@ -468,6 +472,10 @@ class TrajectoryConfig:
     line_type: str | None = None
     columns: tuple[tuple[str, str], ...] = ()
     geoid_m: float | None = None
+    origin_deg: tuple[float, float] | None = None
+    points_m: tuple[tuple[float, float], ...] | None = None
+    corner_radius_m: float = 1.0
+    wander: dict[str, float] | None = field(default=None, compare=False)
 
     def survey_options(self) -> dict[str, Any]:
         """Keyword arguments for :func:`magnav_ins.maps.io.read_survey` (column mapping, geoid override)."""
@@ -490,11 +498,14 @@ class ImuConfig:
 @dataclass(frozen=True)
 class InitConfig:
     """1-sigma initial INS errors drawn per run (the same draw for every estimator and the baseline).
-    Defaults: a tactical INS that has just lost GNSS (DESIGN.md)."""
+    Defaults: a tactical INS that has just lost GNSS (DESIGN.md). ``position_offset_m`` = (north, east) m: a fixed
+    initial position error instead of a drawn one (Storms Table 4.1: the filter starts 1.145 m beside the vehicle);
+    ``position_sigma_m`` stays the filters' initial 1-sigma."""
 
     position_sigma_m: float = 10.0
     velocity_sigma_mps: float = 0.1
     attitude_sigma_deg: tuple[float, float, float] = (0.02, 0.02, 0.2)  # roll, pitch, yaw
+    position_offset_m: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -738,6 +749,7 @@ _TRAJ_KEYS = {
         {"start", "heading_deg", "leg_length_m", "leg_spacing_m", "legs", "altitude_m", "speed_mps"},
         {"turn_rate_deg_s"},
     ),
+    "ground_path": ({"origin", "points_m", "speed_mps"}, {"altitude_m", "corner_radius_m", "wander"}),
 }
 
 
@@ -795,6 +807,30 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
         kw["legs"] = _int(ctx, "trajectory.legs", t["legs"], minimum=1)
         if "turn_rate_deg_s" in t:
             kw["turn_rate_deg_s"] = _number(ctx, "trajectory.turn_rate_deg_s", t["turn_rate_deg_s"], positive=True)
+    elif kind == "ground_path":
+        kw["origin_deg"] = _latlon(ctx, "trajectory.origin", t["origin"])
+        pts = t["points_m"]
+        if not isinstance(pts, list) or len(pts) < 2 or not all(isinstance(p, list) and len(p) == 2 for p in pts):
+            raise ctx.error("trajectory.points_m", f"expected at least two [north_m, east_m] points, got {pts!r}")
+        kw["points_m"] = tuple(
+            (_number(ctx, "trajectory.points_m", p[0]), _number(ctx, "trajectory.points_m", p[1])) for p in pts
+        )
+        kw.setdefault("altitude_m", 0.0)
+        if "corner_radius_m" in t:
+            kw["corner_radius_m"] = _number(ctx, "trajectory.corner_radius_m", t["corner_radius_m"], nonneg=True)
+        if "wander" in t:
+            w = t["wander"]
+            if not isinstance(w, dict):
+                raise ctx.error("trajectory.wander", f"expected a table {{ accel_sigma_mps2 = ..., ... }}, got {w!r}")
+            _check_keys(ctx, "trajectory.wander", w, set(WANDER_KEYS), set())
+            kw["wander"] = {k: _number(ctx, f"trajectory.wander.{k}", v, nonneg=True) for k, v in w.items()}
+        from ..ins.ground_path import Path2D, Wander
+
+        try:
+            Path2D.from_points(kw["points_m"], kw.get("corner_radius_m", 1.0))
+            Wander(**(kw.get("wander") or {}))
+        except ConfigError as exc:
+            raise ctx.error("trajectory", str(exc)) from None
     else:
         kw["path"] = _path(ctx, "trajectory.path", t["path"], base, allow_spec=False)
     return TrajectoryConfig(**kw)
@@ -810,7 +846,9 @@ def _imu(ctx: _Ctx, t: dict[str, Any]) -> ImuConfig:
 def _init(ctx: _Ctx, t: dict[str, Any] | None) -> InitConfig:
     if t is None:
         return InitConfig()
-    _check_keys(ctx, "init", t, {"position_sigma_m", "velocity_sigma_mps", "attitude_sigma_deg"}, set())
+    _check_keys(
+        ctx, "init", t, {"position_sigma_m", "velocity_sigma_mps", "attitude_sigma_deg", "position_offset_m"}, set()
+    )
     d = InitConfig()
     pos = _number(ctx, "init.position_sigma_m", t.get("position_sigma_m", d.position_sigma_m), nonneg=True)
     vel = _number(ctx, "init.velocity_sigma_mps", t.get("velocity_sigma_mps", d.velocity_sigma_mps), nonneg=True)
@@ -818,7 +856,12 @@ def _init(ctx: _Ctx, t: dict[str, Any] | None) -> InitConfig:
     if not isinstance(att, list) or len(att) != 3:
         raise ctx.error("init.attitude_sigma_deg", f"expected [roll, pitch, yaw] in degrees, got {att!r}")
     att_t = tuple(_number(ctx, "init.attitude_sigma_deg", a, nonneg=True) for a in att)
-    return InitConfig(pos, vel, att_t)  # type: ignore[arg-type]
+    off = t.get("position_offset_m")
+    if off is not None:
+        if not isinstance(off, list) or len(off) != 2:
+            raise ctx.error("init.position_offset_m", f"expected [north_m, east_m], got {off!r}")
+        off = (_number(ctx, "init.position_offset_m", off[0]), _number(ctx, "init.position_offset_m", off[1]))
+    return InitConfig(pos, vel, att_t, off)  # type: ignore[arg-type]
 
 
 def _columns(ctx: _Ctx, key: str, v: Any) -> tuple[tuple[str, str], ...]:
