@@ -47,6 +47,20 @@ def _map_options(p: argparse.ArgumentParser, *, survey: bool) -> None:
     if survey:
         _survey_options(p)
     p.add_argument("--spacing", type=float, default=None, metavar="M", help="grid spacing (m) for a survey CSV")
+    p.add_argument(
+        "--map-error-sigma",
+        type=float,
+        default=None,
+        metavar="S",
+        help="give the map a uniform error layer: 1-sigma map error in the map's unit (with --map-error-correlation-m)",
+    )
+    p.add_argument(
+        "--map-error-correlation-m",
+        type=float,
+        default=None,
+        metavar="M",
+        help="correlation length (m) of the map error given by --map-error-sigma",
+    )
 
 
 def _survey_options(p: argparse.ArgumentParser) -> None:
@@ -99,6 +113,8 @@ def _load(args: argparse.Namespace, spec: str) -> Any:
         columns=parse_column_mapping(getattr(args, "column", [])) or None,
         line_type=getattr(args, "line_type", None),
         exclude_line_type=getattr(args, "exclude_line_type", None),
+        error_sigma=getattr(args, "map_error_sigma", None),
+        error_correlation_m=getattr(args, "map_error_correlation_m", None),
     )
 
 
@@ -134,6 +150,17 @@ def map_summary(fmap: Any) -> dict[str, Any]:
         "value_rms": float(np.sqrt(np.nanmean(v**2))),
         "coverage": float(np.mean(np.isfinite(v))),
     }
+    if fmap.has_error_layer:
+        es = np.asarray(fmap.error_sigma, dtype=float)
+        out["error_layer"] = {
+            "sigma_median": float(np.median(es)),
+            "sigma_p90": float(np.percentile(es, 90)),
+            "sigma_range": [float(es.min()), float(es.max())],
+            "correlation_m": float(fmap.error_correlation_m),
+            "source": fmap.error_source,
+        }
+    else:
+        out["error_layer"] = None
     if fmap.frame == "local":
         out["origin_deg_m"] = [fmap.origin[0] * RAD_TO_DEG, fmap.origin[1] * RAD_TO_DEG, fmap.origin[2]]
         w, e, s, n = fmap.region
@@ -167,11 +194,22 @@ def run_info(args: argparse.Namespace) -> int:
         ("altitude", f"{alt:.1f} m" if not s["draped"] else f"draped {alt[0]:.1f} .. {alt[1]:.1f} m (ellipsoidal)"),
         ("values", f"{s['value_range'][0]:.3f} .. {s['value_range'][1]:.3f} {s['unit']} (rms {s['value_rms']:.3f})"),
         ("coverage", f"{100 * s['coverage']:.1f} % of nodes"),
+        ("error layer", _error_text(s)),
     ]
     w = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"{k:<{w}}  {v}")
     return 0
+
+
+def _error_text(s: dict[str, Any]) -> str:
+    e = s.get("error_layer")
+    if not e:
+        return "no error layer (matchers use their stated default)"
+    return (
+        f"1-sigma median {e['sigma_median']:.3g}, 90 % {e['sigma_p90']:.3g}, range {e['sigma_range'][0]:.3g} .. "
+        f"{e['sigma_range'][1]:.3g} {s['unit']}; correlation length {e['correlation_m']:.0f} m; {e['source']}"
+    )
 
 
 # ------------------------------------------------------------------------------------------------ grid
@@ -198,6 +236,13 @@ def _add_grid(map_sub: argparse._SubParsersAction) -> None:
         "and print the misfit",
     )
     p.add_argument("--altitude-m", type=float, default=None, help="constant ellipsoidal height if no height column")
+    p.add_argument(
+        "--error-folds",
+        type=int,
+        default=5,
+        metavar="K",
+        help="folds of the block cross-validation that estimates the map's error layer (0: no layer; default 5)",
+    )
     p.add_argument("--float32", action="store_true", help="store values as float32 (half the size)")
     p.add_argument("--out", default=None, metavar="MAP.nc", help="output NetCDF (default: SURVEY name + .nc here)")
     p.add_argument("--quiet", action="store_true", help="print nothing")
@@ -246,7 +291,11 @@ def run_grid(args: argparse.Namespace) -> int:
         exclude = sorted(set(exclude) | set(ties))
     if check_ids:
         exclude = sorted(set(exclude) | (set(check_ids) & set(used.line_ids().tolist())))
-    fmap = grid_survey(used, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem)
+    if args.error_folds < 0 or args.error_folds == 1:
+        raise InputError(f"--error-folds: expected 0 (no error layer) or at least 2, got {args.error_folds}")
+    fmap = grid_survey(
+        used, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem, error_folds=args.error_folds
+    )
     fmap.metadata["source"] = src.name
     fmap.metadata["heights"] = survey.heights
     for key, val in (("line_type", args.line_type), ("excluded_line_type", args.exclude_line_type)):
@@ -256,6 +305,8 @@ def run_grid(args: argparse.Namespace) -> int:
     if check_ids:
         per = tie_line_misfit(fmap, survey, check_ids)
         misfit = _pooled_misfit(per)
+        if fmap.has_error_layer:
+            misfit["z_rms"] = normalised_misfit(fmap, survey.select(np.isin(survey.line, check_ids)))
         fmap.metadata["check_lines"] = {"line_type": args.check_lines, **misfit}
     write_map(fmap, out, dtype="float32" if args.float32 else "float64")
     if not args.quiet:
@@ -270,13 +321,24 @@ def run_grid(args: argparse.Namespace) -> int:
         ign = fmap.metadata.get("ignored_lines") or []
         if ign:
             print(f"cross lines not used by the line gridder: {','.join(map(str, ign))}")
+        print(f"error layer: {_error_text(map_summary(fmap))}")
         if misfit is not None:
             print(
                 f"{args.check_lines} lines ({len(check_ids)}) predicted by the map: {misfit['n']} readings, misfit "
                 f"(map - observed) RMS {misfit['rms']:.2f}, mean {misfit['mean']:.2f}, std {misfit['std']:.2f} "
                 f"{fmap.unit}; {misfit['n_off']} off the map"
+                + (f"; RMS of misfit / error-layer sigma {misfit['z_rms']:.2f}" if "z_rms" in misfit else "")
             )
     return 0
+
+
+def normalised_misfit(fmap: Any, survey: Any) -> float:
+    """RMS of (map - reading) / error-layer sigma over the readings of ``survey`` on the map (about 1 when the
+    layer is honest)."""
+    r = fmap.value(survey.lat, survey.lon) - survey.value
+    sig = fmap.error_sigma_at(survey.lat, survey.lon)
+    ok = np.isfinite(r) & np.isfinite(sig) & (sig > 0)
+    return float(np.sqrt(np.mean((r[ok] / sig[ok]) ** 2))) if ok.any() else float("nan")
 
 
 def _pooled_misfit(per: dict[int, dict]) -> dict[str, Any]:

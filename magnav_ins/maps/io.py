@@ -52,6 +52,7 @@ from ..core.atomic import atomic_path
 from ..core.errors import InputError, MapError
 from ..core.types import FieldKind
 from ..core.units import DEG_TO_RAD, RAD_TO_DEG
+from .error_layer import DEFAULT_FOLDS
 from .grid import GridMap
 
 FloatArray = NDArray[np.float64]
@@ -704,18 +705,22 @@ def load_map(
     columns: Mapping[str, str] | None = None,
     line_type: str | Sequence[str] | None = None,
     exclude_line_type: str | Sequence[str] | None = None,
+    error_sigma: float | None = None,
+    error_correlation_m: float | None = None,
     **unknown: Any,
 ) -> GridMap:
     """Any map the project accepts: ``builtin:NAME`` (shipped, :mod:`magnav_ins.maps.builtin`), a NetCDF grid
     (:func:`read_map`), or a survey CSV(.xz) gridded on load at ``grid_spacing_m`` (required) with
     :func:`magnav_ins.maps.build.grid_survey`: read with ``columns`` / ``geoid_undulation_m``
     (:func:`read_survey`), only the lines of ``line_type`` kept, ``exclude_lines`` and the lines of
-    ``exclude_line_type`` left out (:func:`select_lines`)."""
+    ``exclude_line_type`` left out (:func:`select_lines`); the map carries its cross-validated error layer
+    (:mod:`magnav_ins.maps.error_layer`). ``error_sigma`` (map unit) with ``error_correlation_m`` (m) gives the map
+    a uniform error layer instead (:func:`attach_error_layer`)."""
     s = str(spec)
     if unknown:
         raise MapError(
             f"{s}: unknown map option(s) {sorted(unknown)}; expected grid_spacing_m, exclude_lines, kind, altitude_m, "
-            "datum, geoid_undulation_m, method, columns, line_type, exclude_line_type"
+            "datum, geoid_undulation_m, method, columns, line_type, exclude_line_type, error_sigma, error_correlation_m"
         )
     survey_only = {
         "columns": columns,
@@ -731,8 +736,8 @@ def load_map(
 
         if grid_spacing_m is not None or exclude_lines:
             raise MapError(f"{s}: grid_spacing_m / exclude_lines apply to survey files, not to shipped grids")
-        return load_builtin_map(s[len(BUILTIN_PREFIX) :])
-    if s.lower().endswith(SURVEY_SUFFIXES):
+        fmap = load_builtin_map(s[len(BUILTIN_PREFIX) :])
+    elif s.lower().endswith(SURVEY_SUFFIXES):
         if grid_spacing_m is None:
             raise MapError(f"{s}: a survey file is gridded on load; give the grid spacing (grid_spacing_m / --spacing)")
         from .build import grid_survey
@@ -742,13 +747,48 @@ def load_map(
         )
         if line_type is not None or exclude_line_type is not None:
             survey = select_lines(survey, line_type=line_type, exclude_line_type=exclude_line_type)
-        fmap = grid_survey(survey, grid_spacing_m, exclude_lines=exclude_lines or (), method=method, name=Path(s).name)
+        fmap = grid_survey(
+            survey,
+            grid_spacing_m,
+            exclude_lines=exclude_lines or (),
+            method=method,
+            name=Path(s).name,
+            error_folds=0 if error_sigma is not None else DEFAULT_FOLDS,
+        )
         if line_type is not None:
             fmap.metadata["line_type"] = line_type
         if exclude_line_type is not None:
             fmap.metadata["excluded_line_type"] = exclude_line_type
         fmap.metadata["heights"] = survey.heights
+    else:
+        if grid_spacing_m is not None or exclude_lines:
+            raise MapError(f"{s}: grid_spacing_m / exclude_lines apply to survey CSV files, not to NetCDF grids")
+        fmap = read_map(s, kind=kind, altitude_m=altitude_m, datum=datum)
+    return attach_error_layer(fmap, error_sigma, error_correlation_m, where=s)
+
+
+def attach_error_layer(fmap: GridMap, sigma: float | None, correlation_m: float | None, *, where: str = "") -> GridMap:
+    """``fmap`` with a uniform user-given error layer (``sigma`` in the map's unit, ``correlation_m`` m; scenario
+    ``[map] error_sigma`` / ``error_correlation_m``, CLI ``--map-error-sigma`` / ``--map-error-correlation-m``),
+    replacing any layer the map carries (logged); unchanged when ``sigma`` is None."""
+    src = where or fmap.name
+    if sigma is None:
+        if correlation_m is not None:
+            raise MapError(f"{src}: error_correlation_m given without error_sigma (--map-error-sigma)")
         return fmap
-    if grid_spacing_m is not None or exclude_lines:
-        raise MapError(f"{s}: grid_spacing_m / exclude_lines apply to survey CSV files, not to NetCDF grids")
-    return read_map(s, kind=kind, altitude_m=altitude_m, datum=datum)
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise MapError(f"{src}: error_sigma must be a positive number in {fmap.unit}, got {sigma!r}")
+    if correlation_m is None:
+        raise MapError(
+            f"{src}: error_sigma needs its correlation length too: error_correlation_m (m; CLI "
+            "--map-error-correlation-m)"
+        )
+    if not (np.isfinite(correlation_m) and correlation_m > 0):
+        raise MapError(f"{src}: error_correlation_m must be a positive number of metres, got {correlation_m!r}")
+    if fmap.has_error_layer:
+        log.info("%s: the map's own error layer (%s) replaced by the given one", src, fmap.error_source)
+    return fmap.with_error_layer(
+        float(sigma),
+        float(correlation_m),
+        f"given by the user: {float(sigma):g} {fmap.unit}, {float(correlation_m):g} m",
+    )

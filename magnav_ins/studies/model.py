@@ -213,6 +213,8 @@ def build_map(sc: Scenario) -> Any:
     try:
         if m.path.lower().endswith(maps_io.SURVEY_SUFFIXES):
             opts = {"kind": m.kind, **m.load_options(), **opts}
+        if m.error_sigma is not None:  # the user's uniform layer (a survey is then gridded without cross-validation)
+            opts = {"error_sigma": m.error_sigma, "error_correlation_m": m.error_correlation_m, **opts}
         fmap = maps_io.load_map(
             m.path, grid_spacing_m=m.grid_spacing_m, exclude_lines=list(m.exclude_lines) or None, **opts
         )

@@ -158,7 +158,9 @@ class MapConfig:
     (``grid_spacing_m``, ``exclude_lines``). ``kind`` is a :class:`FieldKind` value. ``options`` holds extra
     keys for synthetic maps (e.g. ``seed``). For a survey: ``columns`` (our name -> the file's column),
     ``geoid_m`` (geoid undulation for orthometric heights; default the shipped geoid), ``line_type`` (grid only
-    the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``)."""
+    the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``). Any map:
+    ``error_sigma`` (1-sigma map error, map unit) with ``error_correlation_m`` (m) gives it a uniform error layer
+    (for a map that has none; it replaces one the map has)."""
 
     path: str
     kind: FieldKind
@@ -169,6 +171,8 @@ class MapConfig:
     geoid_m: float | None = None
     line_type: str | None = None
     exclude_line_type: str | None = None
+    error_sigma: float | None = None
+    error_correlation_m: float | None = None
 
     def load_options(self) -> dict[str, Any]:
         """The survey keys as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
@@ -465,7 +469,8 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
         ctx,
         "map",
         t,
-        {"path", "kind", "grid_spacing_m", "exclude_lines", "options"} | _MAP_SURVEY_KEYS,
+        {"path", "kind", "grid_spacing_m", "exclude_lines", "options", "error_sigma", "error_correlation_m"}
+        | _MAP_SURVEY_KEYS,
         {"path", "kind"},
     )
     path = _path(ctx, "map.path", t["path"], base)
@@ -493,6 +498,14 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     if kw and not path.lower().endswith(SURVEY_SUFFIXES):
         k = sorted(kw)[0]
         raise ctx.error(f"map.{k}", "applies to a survey CSV map (gridded on load), not to a grid file")
+    if "error_sigma" in t:
+        kw["error_sigma"] = _number(ctx, "map.error_sigma", t["error_sigma"], positive=True)
+        if "error_correlation_m" not in t:
+            raise ctx.error("map.error_sigma", "needs error_correlation_m (m), the map error's correlation length")
+    if "error_correlation_m" in t:
+        if "error_sigma" not in t:
+            raise ctx.error("map.error_correlation_m", "needs error_sigma (1-sigma map error in the map's unit)")
+        kw["error_correlation_m"] = _number(ctx, "map.error_correlation_m", t["error_correlation_m"], positive=True)
     return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), **kw)
 
 
