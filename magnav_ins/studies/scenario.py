@@ -28,7 +28,7 @@ from ..core.types import FieldKind
 
 #: IMU grades understood by ``ins.imu_models.get_grade`` (Storms Table 2.2; Wang Table 1)
 IMU_GRADES = ("consumer", "commercial", "tactical", "navigation", "precision", "quantum")
-TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file")
+TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file", "lawnmower")
 SENSOR_KINDS = {
     "gravimeter": FieldKind.GRAVITY_DISTURBANCE_MGAL,
     "scalar_magnetometer": FieldKind.TOTAL_FIELD_ANOMALY_NT,
@@ -106,7 +106,11 @@ class TrajectoryConfig:
     aircraft flies adjacent lines (:func:`magnav_ins.studies.model.survey_line_points`). A ``survey_line`` may
     instead (or as well) name a ``line_type`` (e.g. ``"TIE"``): every line of that type, in id order (with ``line``:
     those of the listed lines); ``columns`` maps our survey column names to the file's
-    (:func:`magnav_ins.maps.io.read_survey`), ``geoid_m`` replaces the shipped geoid for orthometric heights.
+    (:func:`magnav_ins.maps.io.read_survey`), ``geoid_m`` replaces the shipped geoid for orthometric heights. ``lawnmower`` (``start``
+    [lat, lon] deg, ``heading_deg`` of the first leg, ``leg_length_m``, ``leg_spacing_m``, ``legs``, ``altitude_m``,
+    ``speed_mps``, optional ``turn_rate_deg_s``, default 3): parallel legs joined by turns, each next leg
+    ``leg_spacing_m`` to the right, the pattern flown back and forth until ``duration_s``
+    (:func:`magnav_ins.studies.model.lawnmower_points`): a long flight folded into one map tile.
     """
 
     kind: str
@@ -120,6 +124,11 @@ class TrajectoryConfig:
     lines: tuple[int, ...] = ()
     path: str | None = None
     duration_s: float | None = None
+    heading_deg: float | None = None
+    leg_length_m: float | None = None
+    leg_spacing_m: float | None = None
+    legs: int | None = None
+    turn_rate_deg_s: float | None = None
     line_type: str | None = None
     columns: tuple[tuple[str, str], ...] = ()
     geoid_m: float | None = None
@@ -372,6 +381,10 @@ _TRAJ_KEYS = {
     "waypoints": ({"points", "altitude_m", "speed_mps"}, set()),
     "survey_line": ({"survey", "speed_mps"}, {"line", "line_type", "columns", "geoid_m"}),
     "file": ({"path"}, set()),
+    "lawnmower": (
+        {"start", "heading_deg", "leg_length_m", "leg_spacing_m", "legs", "altitude_m", "speed_mps"},
+        {"turn_rate_deg_s"},
+    ),
 }
 
 
@@ -421,6 +434,14 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
             kw["columns"] = _columns(ctx, "trajectory.columns", t["columns"])
         if "geoid_m" in t:
             kw["geoid_m"] = _number(ctx, "trajectory.geoid_m", t["geoid_m"])
+    elif kind == "lawnmower":
+        kw["start_deg"] = _latlon(ctx, "trajectory.start", t["start"])
+        kw["heading_deg"] = _number(ctx, "trajectory.heading_deg", t["heading_deg"])
+        kw["leg_length_m"] = _number(ctx, "trajectory.leg_length_m", t["leg_length_m"], positive=True)
+        kw["leg_spacing_m"] = _number(ctx, "trajectory.leg_spacing_m", t["leg_spacing_m"], positive=True)
+        kw["legs"] = _int(ctx, "trajectory.legs", t["legs"], minimum=1)
+        if "turn_rate_deg_s" in t:
+            kw["turn_rate_deg_s"] = _number(ctx, "trajectory.turn_rate_deg_s", t["turn_rate_deg_s"], positive=True)
     else:
         kw["path"] = _path(ctx, "trajectory.path", t["path"], base, allow_spec=False)
     return TrajectoryConfig(**kw)
