@@ -8,7 +8,8 @@ NetCDF layout written by :func:`write_map` (and required by :func:`read_map`)
 * Geodetic maps: coordinates ``latitude`` (``degrees_north``) and ``longitude`` (``degrees_east``). Local maps:
   coordinates ``northing`` and ``easting`` (``m``) and global attributes ``origin_lat_deg``, ``origin_lon_deg``,
   ``origin_h_m`` (the tangent-plane origin).
-* Global attributes ``Conventions = "CF-1.8"``, ``magnav_frame`` (``geodetic`` / ``local``), ``geodetic_datum``
+* Global attributes ``Conventions = "CF-1.8"``, ``magnav_frame`` (``geodetic`` / ``local`` / ``projected``: then ``northing``, ``easting`` are metres of the CRS
+  in global attribute ``crs``), ``geodetic_datum``
   (``WGS84``), ``altitude_m`` (ellipsoidal height of a flat map surface, m) - or, for draped maps, a data variable
   ``altitude`` (m) on the same grid - and optionally ``crs``, ``title`` (the map's name), ``magnav_metadata`` (JSON).
 * Optionally the map error layer: a data variable ``map_error_sigma`` on the same (y, x) grid (1-sigma, the map's
@@ -53,7 +54,9 @@ from ..core.errors import InputError, MapError
 from ..core.types import FieldKind
 from ..core.units import DEG_TO_RAD, RAD_TO_DEG
 from .error_layer import DEFAULT_FOLDS
+from .formats import is_foreign_netcdf, is_netcdf, normalise_unit, read_grid
 from .grid import GridMap
+from .raster import RASTER_SUFFIXES, ers_for
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -80,10 +83,11 @@ def write_map(fmap: GridMap, path: str | Path, *, dtype: str = "float64", compre
             "longitude": ("longitude", x * RAD_TO_DEG, {"units": "degrees_east", "standard_name": "longitude"}),
         }
     else:
+        plane = "the local tangent plane" if fmap.frame == "local" else "the projected CRS (global attribute crs)"
         dims = ("northing", "easting")
         coords = {
-            "northing": ("northing", y, {"units": "m", "long_name": "northing in the local tangent plane"}),
-            "easting": ("easting", x, {"units": "m", "long_name": "easting in the local tangent plane"}),
+            "northing": ("northing", y, {"units": "m", "long_name": f"northing in {plane}"}),
+            "easting": ("easting", x, {"units": "m", "long_name": f"easting in {plane}"}),
         }
     vdims: tuple[str, ...] = dims
     if kind.components == 3:
@@ -150,18 +154,40 @@ def read_map(
     kind: FieldKind | str | None = None,
     altitude_m: float | None = None,
     datum: str | None = None,
+    unit: str | None = None,
+    crs: str | None = None,
+    reproject: bool = False,
 ) -> GridMap:
-    """Read a NetCDF grid into a :class:`GridMap`. Keyword overrides supply metadata the file lacks (explicitly;
-    they never silently replace what the file says: a conflicting override is an error)."""
+    """Read a grid file into a :class:`GridMap`: this project's NetCDF format (module docstring), or any grid as
+    downloaded - GeoTIFF, ER Mapper, GXF, Geosoft GRD, GMT / COARDS / CF NetCDF (:func:`magnav_ins.maps.formats.read_grid`).
+
+    Keyword overrides supply metadata the file lacks (explicitly; they never silently replace what the file says: a
+    conflicting override is an error): ``kind``, ``altitude_m`` (ellipsoidal m), ``datum``, ``variable``, and for
+    downloaded grids ``unit`` (the values' unit when the file states none or an impossible one: ``"nT"``,
+    ``"mGal"``, ``"um/s^2"``, ``"m/s^2"``; gravity is converted to mGal), ``crs`` (the projection of a grid in
+    metres that does not say, e.g. ``"EPSG:32613"``) and ``reproject`` (resample a projected grid onto WGS-84
+    latitude/longitude instead of using it in its own CRS). Geoscience Australia's gravity grid, for example::
+
+        read_map("QLDWestGravity.nc", kind="gravity_disturbance_mgal", unit="um/s^2", altitude_m=0.0, datum="WGS84")
+    """
     import xarray as xr
 
     path = Path(path)
     if not path.is_file():
         raise MapError(f"{path}: no such map file")
+    suffix = path.suffix.lower()
+    if suffix in RASTER_SUFFIXES or ers_for(path) is not None or not is_netcdf(path):
+        return read_grid(path, kind=kind, unit=unit, altitude_m=altitude_m, datum=datum, crs=crs,
+                         variable=variable, reproject=reproject)  # fmt: skip
     try:
         ds = xr.load_dataset(path)
     except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file for the user
         raise MapError(f"{path}: cannot be read as NetCDF ({type(exc).__name__}: {exc})") from None
+    if is_foreign_netcdf(ds):
+        return read_grid(path, kind=kind, unit=unit, altitude_m=altitude_m, datum=datum, crs=crs,
+                         variable=variable, reproject=reproject)  # fmt: skip
+    if crs is not None:
+        raise MapError(f"{path}: crs= applies to downloaded grids; this file is in magnav_ins's format")
     names = [v for v in ds.data_vars if v not in ("altitude", "crs", "map_error_sigma")]
     if variable is not None:
         if variable not in ds.data_vars:
@@ -203,6 +229,8 @@ def read_map(
             f"{where_}: attribute 'units' is missing; the values must state their unit ({the_kind.unit} for "
             f"{the_kind.value}); add units='{the_kind.unit}' to the variable's attributes"
         )
+    if unit is not None and normalise_unit(unit) != normalise_unit(the_kind.unit):
+        raise MapError(f"{where_}: unit={unit!r} given, but a map in magnav_ins's format is in {the_kind.unit}")
     if str(units).strip().lower() != the_kind.unit.lower():
         raise MapError(
             f"{where_}: units={units!r} but kind {the_kind.value} is in {the_kind.unit}; convert the values first"
@@ -239,10 +267,12 @@ def read_map(
     if frame == "geodetic":
         ydim = "latitude" if "latitude" in dims else "lat"
         xdim = "longitude" if "longitude" in dims else "lon"
-    elif frame == "local":
+    elif frame in ("local", "projected"):
         ydim, xdim = "northing", "easting"
     else:
-        raise MapError(f"{path}: cannot tell the frame; set global attribute magnav_frame='geodetic' or 'local'")
+        raise MapError(
+            f"{path}: cannot tell the frame; set global attribute magnav_frame='geodetic', 'local' or 'projected'"
+        )
     if ydim not in dims or xdim not in dims:
         raise MapError(f"{where_}: expected dimensions ({ydim}, {xdim}), found {dims}")
     order = [ydim, xdim] + (["component"] if the_kind.components == 3 else [])
@@ -707,6 +737,10 @@ def load_map(
     exclude_line_type: str | Sequence[str] | None = None,
     error_sigma: float | None = None,
     error_correlation_m: float | None = None,
+    unit: str | None = None,
+    crs: str | None = None,
+    variable: str | None = None,
+    reproject: bool = False,
     **unknown: Any,
 ) -> GridMap:
     """Any map the project accepts: ``builtin:NAME`` (shipped, :mod:`magnav_ins.maps.builtin`), a NetCDF grid
@@ -715,12 +749,14 @@ def load_map(
     (:func:`read_survey`), only the lines of ``line_type`` kept, ``exclude_lines`` and the lines of
     ``exclude_line_type`` left out (:func:`select_lines`); the map carries its cross-validated error layer
     (:mod:`magnav_ins.maps.error_layer`). ``error_sigma`` (map unit) with ``error_correlation_m`` (m) gives the map
-    a uniform error layer instead (:func:`attach_error_layer`)."""
+    a uniform error layer instead (:func:`attach_error_layer`). ``unit``, ``crs``, ``variable``, ``reproject``
+    (and ``kind``, ``altitude_m``, ``datum``) go to :func:`read_map` for grid files as downloaded."""
     s = str(spec)
     if unknown:
         raise MapError(
             f"{s}: unknown map option(s) {sorted(unknown)}; expected grid_spacing_m, exclude_lines, kind, altitude_m, "
-            "datum, geoid_undulation_m, method, columns, line_type, exclude_line_type, error_sigma, error_correlation_m"
+            "datum, geoid_undulation_m, method, columns, line_type, exclude_line_type, error_sigma, error_correlation_m, "
+            "unit, crs, variable, reproject"
         )
     survey_only = {
         "columns": columns,
@@ -729,6 +765,10 @@ def load_map(
         "geoid_undulation_m": geoid_undulation_m,
     }
     given = sorted(k for k, v in survey_only.items() if v)
+    grid_only = {"unit": unit, "crs": crs, "variable": variable, "reproject": reproject}
+    given_g = sorted(k for k, v in grid_only.items() if v)
+    if given_g and (s.startswith(BUILTIN_PREFIX) or s.lower().endswith(SURVEY_SUFFIXES)):
+        raise MapError(f"{s}: {', '.join(given_g)} apply to grid files, not to shipped maps or surveys")
     if given and not s.lower().endswith(SURVEY_SUFFIXES):
         raise MapError(f"{s}: {', '.join(given)} apply to survey CSV files, not to grids")
     if s.startswith(BUILTIN_PREFIX):
@@ -763,7 +803,16 @@ def load_map(
     else:
         if grid_spacing_m is not None or exclude_lines:
             raise MapError(f"{s}: grid_spacing_m / exclude_lines apply to survey CSV files, not to NetCDF grids")
-        fmap = read_map(s, kind=kind, altitude_m=altitude_m, datum=datum)
+        fmap = read_map(
+            s,
+            kind=kind,
+            altitude_m=altitude_m,
+            datum=datum,
+            unit=unit,
+            crs=crs,
+            variable=variable,
+            reproject=reproject,
+        )
     return attach_error_layer(fmap, error_sigma, error_correlation_m, where=s)
 
 

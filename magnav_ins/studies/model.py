@@ -271,6 +271,8 @@ def build_map(sc: Scenario) -> Any:
         else:
             if m.path.lower().endswith(maps_io.SURVEY_SUFFIXES):
                 opts = {"kind": m.kind, **m.load_options(), **opts}
+            elif not m.path.startswith("builtin:"):  # a grid file: [map] kind says what a downloaded grid holds
+                opts = {"kind": m.kind, **m.grid_options(), **opts}
             if (
                 m.error_sigma is not None
             ):  # the user's uniform layer (a survey is then gridded without cross-validation)

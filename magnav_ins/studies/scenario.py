@@ -169,7 +169,10 @@ class MapConfig:
     ``geoid_m`` (geoid undulation for orthometric heights; default the shipped geoid), ``line_type`` (grid only
     the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``). Any map:
     ``error_sigma`` (1-sigma map error, map unit) with ``error_correlation_m`` (m) gives it a uniform error layer
-    (for a map that has none; it replaces one the map has)."""
+    (for a map that has none; it replaces one the map has). A grid file as downloaded (GeoTIFF, ER Mapper, GXF, GMT /
+    COARDS / CF NetCDF; :mod:`magnav_ins.maps.formats`): ``unit`` (the values' unit if the file states none or an
+    impossible one), ``altitude_m`` (ellipsoidal m), ``datum``, ``crs`` (of a grid in metres that does not say),
+    ``variable``, ``reproject`` (onto latitude/longitude instead of the grid's own projection)."""
 
     path: str
     kind: FieldKind
@@ -182,6 +185,23 @@ class MapConfig:
     exclude_line_type: str | None = None
     error_sigma: float | None = None
     error_correlation_m: float | None = None
+    unit: str | None = None
+    altitude_m: float | None = None
+    datum: str | None = None
+    crs: str | None = None
+    variable: str | None = None
+    reproject: bool = False
+
+    def grid_options(self) -> dict[str, Any]:
+        """The keys of a grid file as downloaded (``unit``, ``altitude_m``, ``datum``, ``crs``, ``variable``,
+        ``reproject``) as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
+        out: dict[str, Any] = {}
+        for k in ("unit", "altitude_m", "datum", "crs", "variable"):
+            if getattr(self, k) is not None:
+                out[k] = getattr(self, k)
+        if self.reproject:
+            out["reproject"] = True
+        return out
 
     def load_options(self) -> dict[str, Any]:
         """The survey keys as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
@@ -483,6 +503,7 @@ def _columns(ctx: _Ctx, key: str, v: Any) -> tuple[tuple[str, str], ...]:
 
 
 _MAP_SURVEY_KEYS = {"columns", "geoid_m", "line_type", "exclude_line_type"}
+_MAP_GRID_KEYS = {"unit", "altitude_m", "datum", "crs", "variable", "reproject"}
 
 
 def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
@@ -491,7 +512,8 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
         "map",
         t,
         {"path", "kind", "grid_spacing_m", "exclude_lines", "options", "error_sigma", "error_correlation_m"}
-        | _MAP_SURVEY_KEYS,
+        | _MAP_SURVEY_KEYS
+        | _MAP_GRID_KEYS,
         {"path", "kind"},
     )
     path = _path(ctx, "map.path", t["path"], base)
@@ -519,6 +541,20 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     if kw and not path.lower().endswith(SURVEY_SUFFIXES):
         k = sorted(kw)[0]
         raise ctx.error(f"map.{k}", "applies to a survey CSV map (gridded on load), not to a grid file")
+    grid_kw: dict[str, Any] = {}
+    for k in ("unit", "datum", "crs", "variable"):
+        if k in t:
+            grid_kw[k] = _str(ctx, f"map.{k}", t[k])
+    if "altitude_m" in t:
+        grid_kw["altitude_m"] = _number(ctx, "map.altitude_m", t["altitude_m"])
+    if "reproject" in t:
+        if not isinstance(t["reproject"], bool):
+            raise ctx.error("map.reproject", f"expected true or false, got {t['reproject']!r}")
+        grid_kw["reproject"] = t["reproject"]
+    if grid_kw and (path.startswith(SPEC_PREFIXES) or path.lower().endswith(SURVEY_SUFFIXES)):
+        k = sorted(grid_kw)[0]
+        raise ctx.error(f"map.{k}", "applies to a grid file (GeoTIFF, ER Mapper, GXF, NetCDF), not to this map")
+    kw.update(grid_kw)
     if "error_sigma" in t:
         kw["error_sigma"] = _number(ctx, "map.error_sigma", t["error_sigma"], positive=True)
         if "error_correlation_m" not in t:
