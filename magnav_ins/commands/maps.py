@@ -348,7 +348,7 @@ def _add_sample(map_sub: argparse._SubParsersAction) -> None:
 
 def read_points(path: str | Path) -> Any:
     """Read a points CSV (``lat_deg``, ``lon_deg``[, ``h_m``]) as a DataFrame, validating every row."""
-    from ..maps.io import _check_latlon, _numeric, read_csv_checked
+    from ..maps.survey import _check_latlon, _numeric, read_csv_checked
 
     src = str(path)
     if not Path(path).is_file():

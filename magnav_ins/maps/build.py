@@ -41,7 +41,7 @@ from ..core.frames import geodetic_to_ned
 from .error_layer import DEFAULT_FOLDS, ERROR_INFLATION, ErrorModel, cross_validate, nearest_distance
 from .grid import GridMap
 from .interp import bilinear, bilinear_scalar
-from .io import Survey
+from .survey import Survey
 
 FloatArray = NDArray[np.float64]
 CROSS_LINE_TOLERANCE_RAD = np.deg2rad(20.0)
