@@ -290,9 +290,17 @@ def build_map(sc: Scenario) -> Any:
                 fmap = read_gravity_grid(m.path, kind=m.kind, **opts)
             except TypeError as exc:
                 raise ConfigError(f"{sc.where('map.options')}: {exc}") from None
+            if m.error_sigma is not None:
+                fmap = maps_io.attach_error_layer(fmap, m.error_sigma, m.error_correlation_m, where=m.path)
         else:
             if m.path.lower().endswith(maps_io.SURVEY_SUFFIXES):
                 opts = {"kind": m.kind, **m.load_options(), **opts}
+            elif not m.path.startswith("builtin:"):  # a grid file: [map] kind says what a downloaded grid holds
+                opts = {"kind": m.kind, **m.grid_options(), **opts}
+            if (
+                m.error_sigma is not None
+            ):  # the user's uniform layer (a survey is then gridded without cross-validation)
+                opts = {"error_sigma": m.error_sigma, "error_correlation_m": m.error_correlation_m, **opts}
             fmap = maps_io.load_map(
                 m.path, grid_spacing_m=m.grid_spacing_m, exclude_lines=list(m.exclude_lines) or None, **opts
             )

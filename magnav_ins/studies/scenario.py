@@ -147,7 +147,43 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         hi=3000.0,
         lo_open=True,
         why="above Mach 8 nothing navigates by maps",
-        kinds=("great_circle", "waypoints", "survey_line", "lawnmower"),
+        kinds=("great_circle", "waypoints", "survey_line", "lawnmower", "ground_path"),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "origin",
+        "[lat, lon] deg",
+        "origin of a ground path's local plane",
+        REQUIRED,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "points_m",
+        "[[north, east], ...] m",
+        "at least two corner points about the origin (a walk, a hallway route)",
+        REQUIRED,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory", "altitude_m", "number", "ellipsoidal height of a ground path, m", 0.0, kinds=("ground_path",)
+    ),
+    ScenarioKey(
+        "trajectory",
+        "corner_radius_m",
+        "number",
+        "radius of the rounded corners, m",
+        1.0,
+        lo=0.0,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "wander",
+        "table",
+        "random walk about the path { " + ", ".join(WANDER_KEYS) + " } (magnav_ins.ins.ground_path.Wander)",
+        "{}",
+        kinds=("ground_path",),
     ),
     ScenarioKey(
         "trajectory", "survey", "string", "survey CSV(.xz) path or builtin:NAME", REQUIRED, kinds=("survey_line",)
@@ -278,6 +314,13 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         hi=30.0,
         why="the error model assumes small attitude errors",
     ),
+    ScenarioKey(
+        "init",
+        "position_offset_m",
+        "[north, east] m",
+        "a fixed initial position error instead of a random draw (Storms Table 4.1)",
+        None,
+    ),
     # [map]
     ScenarioKey("map", "path", "string", "NetCDF grid, survey CSV(.xz), builtin:NAME or synthetic:NAME", REQUIRED),
     ScenarioKey("map", "kind", "string", "one of " + ", ".join(k.value for k in FieldKind), REQUIRED),
@@ -313,6 +356,38 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "accept map values implausible for the map's kind (e.g. full gravity as a disturbance)",
         False,
     ),
+    ScenarioKey(
+        "map",
+        "error_sigma",
+        "number",
+        "give the map a uniform error layer: 1-sigma map error in the map's unit (with error_correlation_m)",
+        "the map's own layer, else the matchers' stated default",
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "error_correlation_m",
+        "number",
+        "correlation length of the map error given by error_sigma, m",
+        None,
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "unit",
+        "string",
+        "unit of a downloaded grid's values if the file states none or a wrong one (nT; mGal, um/s^2, m/s^2)",
+        None,
+    ),
+    ScenarioKey("map", "altitude_m", "number", "ellipsoidal height of a downloaded grid's surface, m", None),
+    ScenarioKey("map", "datum", "string", "geodetic datum of a downloaded grid that does not say (WGS84)", None),
+    ScenarioKey(
+        "map", "crs", "string", "CRS of a downloaded grid in metres that does not say (EPSG:NNNN, PROJ or WKT)", None
+    ),
+    ScenarioKey("map", "variable", "string", "the data variable of a file holding several grids", None),
+    ScenarioKey("map", "reproject", "boolean", "resample a projected grid onto latitude/longitude", False),
     # [sensor]
     ScenarioKey("sensor", "kind", "string", "one of " + ", ".join(SENSOR_KINDS), REQUIRED),
     ScenarioKey(
@@ -514,7 +589,12 @@ class MapConfig:
     (``grid_spacing_m``, ``exclude_lines``). ``kind`` is a :class:`FieldKind` value. ``options`` holds extra
     keys for synthetic maps (e.g. ``seed``). For a survey: ``columns`` (our name -> the file's column),
     ``geoid_m`` (geoid undulation for orthometric heights; default the shipped geoid), ``line_type`` (grid only
-    the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``).
+    the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``). Any map:
+    ``error_sigma`` (1-sigma map error, map unit) with ``error_correlation_m`` (m) gives it a uniform error layer
+    (for a map that has none; it replaces one the map has). A grid file as downloaded (GeoTIFF, ER Mapper, GXF, GMT /
+    COARDS / CF NetCDF; :mod:`magnav_ins.maps.formats`): ``unit`` (the values' unit if the file states none or an
+    impossible one), ``altitude_m`` (ellipsoidal m), ``datum``, ``crs`` (of a grid in metres that does not say),
+    ``variable``, ``reproject`` (onto latitude/longitude instead of the grid's own projection).
     ``allow_implausible``: accept values implausible for ``kind`` (:mod:`magnav_ins.core.plausibility`)."""
 
     path: str
@@ -527,6 +607,25 @@ class MapConfig:
     line_type: str | None = None
     exclude_line_type: str | None = None
     allow_implausible: bool = False
+    error_sigma: float | None = None
+    error_correlation_m: float | None = None
+    unit: str | None = None
+    altitude_m: float | None = None
+    datum: str | None = None
+    crs: str | None = None
+    variable: str | None = None
+    reproject: bool = False
+
+    def grid_options(self) -> dict[str, Any]:
+        """The keys of a grid file as downloaded (``unit``, ``altitude_m``, ``datum``, ``crs``, ``variable``,
+        ``reproject``) as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
+        out: dict[str, Any] = {}
+        for k in ("unit", "altitude_m", "datum", "crs", "variable"):
+            if getattr(self, k) is not None:
+                out[k] = getattr(self, k)
+        if self.reproject:
+            out["reproject"] = True
+        return out
 
     def load_options(self) -> dict[str, Any]:
         """The survey keys as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
@@ -879,6 +978,7 @@ def _columns(ctx: _Ctx, key: str, v: Any) -> tuple[tuple[str, str], ...]:
 
 
 _MAP_SURVEY_KEYS = {"columns", "geoid_m", "line_type", "exclude_line_type"}
+_MAP_GRID_KEYS = {"unit", "altitude_m", "datum", "crs", "variable", "reproject"}
 
 
 def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
@@ -886,7 +986,18 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
         ctx,
         "map",
         t,
-        {"path", "kind", "grid_spacing_m", "exclude_lines", "options", "allow_implausible"} | _MAP_SURVEY_KEYS,
+        {
+            "path",
+            "kind",
+            "grid_spacing_m",
+            "exclude_lines",
+            "options",
+            "error_sigma",
+            "error_correlation_m",
+            "allow_implausible",
+        }
+        | _MAP_SURVEY_KEYS
+        | _MAP_GRID_KEYS,
         {"path", "kind"},
     )
     path = _path(ctx, "map.path", t["path"], base)
@@ -917,6 +1028,28 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     allow = t.get("allow_implausible", False)
     if not isinstance(allow, bool):
         raise ctx.error("map.allow_implausible", f"expected true or false, got {allow!r}")
+    grid_kw: dict[str, Any] = {}
+    for k in ("unit", "datum", "crs", "variable"):
+        if k in t:
+            grid_kw[k] = _str(ctx, f"map.{k}", t[k])
+    if "altitude_m" in t:
+        grid_kw["altitude_m"] = _number(ctx, "map.altitude_m", t["altitude_m"])
+    if "reproject" in t:
+        if not isinstance(t["reproject"], bool):
+            raise ctx.error("map.reproject", f"expected true or false, got {t['reproject']!r}")
+        grid_kw["reproject"] = t["reproject"]
+    if grid_kw and (path.startswith(SPEC_PREFIXES) or path.lower().endswith(SURVEY_SUFFIXES)):
+        k = sorted(grid_kw)[0]
+        raise ctx.error(f"map.{k}", "applies to a grid file (GeoTIFF, ER Mapper, GXF, NetCDF), not to this map")
+    kw.update(grid_kw)
+    if "error_sigma" in t:
+        kw["error_sigma"] = _number(ctx, "map.error_sigma", t["error_sigma"], positive=True)
+        if "error_correlation_m" not in t:
+            raise ctx.error("map.error_sigma", "needs error_correlation_m (m), the map error's correlation length")
+    if "error_correlation_m" in t:
+        if "error_sigma" not in t:
+            raise ctx.error("map.error_correlation_m", "needs error_sigma (1-sigma map error in the map's unit)")
+        kw["error_correlation_m"] = _number(ctx, "map.error_correlation_m", t["error_correlation_m"], positive=True)
     return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), allow_implausible=allow, **kw)
 
 
