@@ -190,6 +190,9 @@ def test_replay_sample_ulg_with_init_runs_with_every_fuser(shared_data, tmp_path
     assert res.returncode == 0, res.stderr[-2000:]
     rows = out.read_text().splitlines()
     assert len(rows) > 90 and "Traceback" not in res.stderr
+    assert rows[0].split(",")[-1] == "hpl_m"
+    hpl = np.array([float(r.split(",")[-1]) for r in rows[1:]])
+    assert np.all(np.isfinite(hpl) & (hpl > 0))
 
 
 def test_fuser_options_match_the_constructors() -> None:
