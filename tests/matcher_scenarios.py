@@ -99,7 +99,9 @@ def _likelihood_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str
 
 # ---------------------------------------------------------------------------------------------- batch: PMHT
 def _gravity_map(rng: np.random.Generator) -> GridMap:
-    return random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    # the readings are drawn from this very map: its error is exactly zero (PMHT uses the map's error layer)
+    return fmap.with_error_layer(0.0, correlation_m=10.0, source="exact: the readings are drawn from this map")
 
 
 def _pmht_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str) -> tuple[Fix, np.ndarray]:

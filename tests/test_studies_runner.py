@@ -29,7 +29,10 @@ DESIGN_KEYS = {
     "availability",
     "nees_mean",
 }
-EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "fix_nees_mean", "hpl_median_m", "hpl_exceedance"}
+EXTRA_KEYS = {
+    "fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons", "fix_nees_mean", "hpl_median_m",
+    "hpl_exceedance",
+}  # fmt: skip
 #: the stand-in's protection level: sqrt(2 ln 10) sigma, exceeded by a circular Gaussian error 10 % of the time
 HPL_K10 = float(np.sqrt(2.0 * np.log(10.0)))
 

@@ -283,3 +283,17 @@ class UkfFuser(InertialCore):
             extra["inflation"] = forced
             v_ne = nis(y[:2], S_ne)
         return Innovation(float(fix.t), y[:2], S_ne, v_ne, True, "", fix.source, extra)
+
+    def correct_batch(self, fixes: list[Fix], cov: np.ndarray) -> Innovation:
+        """Fuse a batch of correlated fixes (time order) with their joint covariance ``cov`` (2J, 2J) m^2 as one
+        stacked measurement (:mod:`.batch`: stochastic cloning over the replay buffer, which must cover the
+        batch); gated at ``gate_probability`` with 2J dof. Returns one innovation at the last fix time."""
+        from .batch import correct_batch
+
+        inn = correct_batch(self, fixes, cov, self.gate_probability)
+        if inn.reason.startswith("NIS"):
+            self._n_rejected += 1
+        elif inn.accepted:
+            self._n_rejected = 0
+        self.innovations.append(inn)
+        return inn
