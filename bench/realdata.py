@@ -59,6 +59,8 @@ READING_NOISE_NT = 1.0
 WINDOW = 60
 #: Rio map node spacing (m): flight lines 1 km apart, ~100 m along-track
 RIO_SPACING_M = 250.0
+#: Rio readings every 1 s (the survey sampled every ~100 m; faster readings would only interpolate it)
+RIO_READING_INTERVAL_S = 1.0
 
 ESTIMATORS: tuple[dict[str, Any], ...] = (
     {"name": "ml+ukf", "matcher": {"kind": "ml"}, "fusion": {"kind": "ukf"}, "window": WINDOW, "match_every": WINDOW},
@@ -84,15 +86,18 @@ JSON_KEYS = (
 
 @dataclass(frozen=True)
 class Case:
-    """One survey line flown at one speed with one IMU grade."""
+    """One survey line flown at one speed with one IMU grade; ``map_keys`` / ``trajectory_keys``: further
+    ``[map]`` / ``[trajectory]`` keys (column mapping, line types, grid spacing)."""
 
     group: str
     survey: str
     map_path: str
-    map_options: tuple[tuple[str, Any], ...]  # further [map] keys (grid_spacing_m, exclude_lines)
     line: int
     speed_mps: float
     grade: str
+    reading_interval_s: float = READING_INTERVAL_S
+    map_keys: tuple[tuple[str, Any], ...] = ()
+    trajectory_keys: tuple[tuple[str, Any], ...] = ()
 
     @property
     def name(self) -> str:
@@ -109,11 +114,11 @@ class Case:
             "name": self.name,
             "seed": self.seed,
             "trajectory": {"kind": "survey_line", "survey": self.survey, "line": self.line,
-                           "speed_mps": self.speed_mps},
+                           "speed_mps": self.speed_mps, **dict(self.trajectory_keys)},
             "imu": {"grade": self.grade, "rate_hz": IMU_RATE_HZ},
-            "map": {"path": self.map_path, "kind": "total_field_anomaly_nt", **dict(self.map_options)},
+            "map": {"path": self.map_path, "kind": "total_field_anomaly_nt", **dict(self.map_keys)},
             "sensor": {"kind": "scalar_magnetometer", "source": "survey", "sigma": READING_NOISE_NT,
-                       "interval_s": READING_INTERVAL_S},
+                       "interval_s": self.reading_interval_s},
             "estimator": [dict(e) for e in estimators],
         }  # fmt: skip
         return scenario_from_dict(data)
@@ -123,30 +128,40 @@ def osborne_lines() -> list[int]:
     """The 22 tie-line numbers of the shipped Osborne tie-line survey."""
     from magnav_ins.maps.builtin import load_survey_lines
 
-    s = load_survey_lines(OSBORNE_SURVEY)
-    return sorted(int(x) for x in np.unique(s.line))
+    return [int(x) for x in load_survey_lines(OSBORNE_SURVEY).line_ids()]
+
+
+#: the Rio survey read as downloaded (h14's column mapping): our name -> the file's column
+RIO_COLUMNS = {"height_ellipsoidal_m": "height_ell_m", "line": "line_number"}
+#: a tie line shorter than this is a stub at the survey's edge (9-29 readings), left out (m)
+RIO_MIN_LINE_M = 20e3
 
 
 def rio_cases(quick: bool) -> tuple[list[Case], str]:
-    """The Rio cases, or none and the reason."""
+    """The Rio cases (the long tie lines, tactical IMU), or none and the reason."""
     if not RIO_SURVEY.is_file():
         return [], f"{RIO_SURVEY.name} not found (../shared/data is not beside the project)"
-    try:
-        from magnav_ins.maps import io as maps_io
+    from magnav_ins.core.frames import latlon_to_meters
+    from magnav_ins.maps import io as maps_io
 
-        s = maps_io.read_survey(RIO_SURVEY)
-        kinds = getattr(s, "line_type", None)
-        if kinds is None:
-            return [], "the survey reader gives no line_type column (flight LINE vs TIE)"
-        ties = sorted(int(x) for x in np.unique(np.asarray(s.line)[np.asarray(kinds) == "TIE"]))
-        flights = sorted(int(x) for x in np.unique(np.asarray(s.line)[np.asarray(kinds) != "TIE"]))
-    except Exception as exc:  # noqa: BLE001 (the reason goes to the output)
-        return [], f"cannot read {RIO_SURVEY.name}: {exc}"
-    opts = (("grid_spacing_m", RIO_SPACING_M), ("exclude_lines", ties))
+    s = maps_io.read_survey(RIO_SURVEY, columns=RIO_COLUMNS).of_type("TIE")
+    lines = []
+    for ln in s.line_ids():
+        m = s.line == ln
+        dn, de = latlon_to_meters(s.lat[m].max() - s.lat[m].min(), s.lon[m].max() - s.lon[m].min(), s.lat[m].mean())
+        if np.hypot(dn, de) >= RIO_MIN_LINE_M:
+            lines.append(int(ln))
+    map_keys = (("columns", RIO_COLUMNS), ("line_type", "LINE"), ("grid_spacing_m", RIO_SPACING_M))
+    traj_keys = (("columns", RIO_COLUMNS), ("line_type", "TIE"))
     speeds = (65.0,) if quick else SPEEDS_MPS
-    lines = ties[:2] if quick else ties
-    del flights
-    return [Case("rio", str(RIO_SURVEY), str(RIO_SURVEY), opts, ln, v, "tactical") for ln in lines for v in speeds], ""
+    if quick:
+        lines = lines[:2]
+    cases = [
+        Case("rio", str(RIO_SURVEY), str(RIO_SURVEY), ln, v, "tactical", RIO_READING_INTERVAL_S, map_keys, traj_keys)
+        for ln in lines
+        for v in speeds
+    ]
+    return cases, ""
 
 
 def all_cases(quick: bool) -> tuple[list[Case], dict[str, str]]:
@@ -155,7 +170,7 @@ def all_cases(quick: bool) -> tuple[list[Case], dict[str, str]]:
     if quick:
         lines = [lines[i] for i in np.linspace(0, len(lines) - 1, 4).round().astype(int)]
     cases = [
-        Case(f"osborne_{grade}", OSBORNE_SURVEY, OSBORNE_MAP, (), ln, v, grade)
+        Case(f"osborne_{grade}", OSBORNE_SURVEY, OSBORNE_MAP, ln, v, grade)
         for grade in ("tactical", "navigation")
         for ln in lines
         for v in speeds

@@ -225,6 +225,14 @@ class FaultMonitor:
             return Verdict("accept", extra={"window_nis": s, "window_dof": 2.0 * n})
         return Verdict("accept")
 
+    def exclusion(self, t: float, residual_ne: ArrayLike, R_ne: ArrayLike, P_ne: ArrayLike) -> None:
+        """Record a fix the fuser excluded by a test of its own (a batch of correlated fixes gated as one): it
+        counts as a fault and its residual (m) joins the doubt until a fix is accepted; it takes no part in a
+        recovery."""
+        r = np.asarray(residual_ne, float).reshape(2)
+        if np.all(np.isfinite(r)):
+            self._exclude(_Excluded(float(t), r, np.asarray(R_ne, float), np.asarray(P_ne, float), False))
+
     def _exclude(self, ex: _Excluded) -> None:
         self.n_faults += 1
         self._excluded.append(ex)
