@@ -582,6 +582,7 @@ def run_estimator(
     except MagnavError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     nav, P = res.trajectory, np.asarray(res.P)
+    P_online, t_online = P, nav.t
     if j is not None and sc.estimators[j].smooth and fkind == "graph":
         # offline: the batch LM solution re-integrated between its nodes, reported at t_out itself
         try:
@@ -595,6 +596,7 @@ def run_estimator(
     lat = np.interp(t_out, nav.t, nav.lat)
     lon = np.interp(t_out, nav.t, np.unwrap(nav.lon))
     cov = np.stack([np.interp(t_out, nav.t, P[:, a, b]) for a in range(2) for b in range(2)], -1).reshape(-1, 2, 2)
+    hpl = protection_levels(t_out, t_online, P_online, res.hpl_m, cov, res.integrity_risk)
     fixes = list(res.fixes)
     return EstimatorOutput(
         name,
@@ -610,6 +612,7 @@ def run_estimator(
         np.array([f.available for f in fixes], bool),
         tuple(f.reason for f in fixes),
         fix_accepted=_accepted(fixes, list(res.innovations)),
+        hpl_m=hpl,
     )
 
 
@@ -618,3 +621,27 @@ def _accepted(fixes: list[Any], innovations: list[Any]) -> np.ndarray:
     if len(innovations) != len(fixes):
         return np.zeros(0, bool)
     return np.array([bool(i.accepted) for i in innovations], bool)
+
+
+def protection_levels(
+    t_out: np.ndarray,
+    t_online: np.ndarray,
+    P_online: np.ndarray,
+    hpl_online: np.ndarray,
+    cov_out: np.ndarray,
+    integrity_risk: float,
+) -> np.ndarray | None:
+    """The estimator's horizontal protection level (m) at ``t_out`` (s): the fuser's online HPL (at ``t_online``,
+    with its covariances ``P_online`` (N,>=2,>=2) m^2) less its fault-free part ``K sigma_max``
+    (:func:`aiding.fusion.integrity.hpl_fault_free`), i.e. the fault-detection margin or doubt, interpolated, plus
+    ``K sigma_max`` of the reported covariance ``cov_out`` (n,2,2) (the smoothed one for a smoothed track, whose
+    fixes are the online filter's). None when the fuser gave no HPL."""
+    from ..aiding.fusion.integrity import hpl_fault_free
+
+    h = np.asarray(hpl_online, float)
+    if h.size == 0 or not np.isfinite(h).any() or len(t_online) != h.size:
+        return None
+    ff_online = np.array([hpl_fault_free(p[:2, :2], integrity_risk) for p in np.asarray(P_online)])
+    excess = np.maximum(h - ff_online, 0.0)
+    ff_out = np.array([hpl_fault_free(c, integrity_risk) for c in np.asarray(cov_out)])
+    return ff_out + np.interp(t_out, t_online, excess)
