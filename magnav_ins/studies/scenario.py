@@ -105,7 +105,8 @@ class TrajectoryConfig:
     flight in flying order (``line`` is the first); several lines are flown one after the other, as a survey
     aircraft flies adjacent lines (:func:`magnav_ins.studies.model.survey_line_points`). ``lawnmower`` (``start``
     [lat, lon] deg, ``heading_deg`` of the first leg, ``leg_length_m``, ``leg_spacing_m``, ``legs``, ``altitude_m``,
-    ``speed_mps``, optional ``turn_rate_deg_s``, default 3): parallel legs joined by turns, each next leg
+    ``speed_mps``, optional ``turn_rate_deg_s``, default 3, and ``roll_time_constant_s``, default 5): parallel legs
+    joined by turns, each next leg
     ``leg_spacing_m`` to the right, the pattern flown back and forth until ``duration_s``
     (:func:`magnav_ins.studies.model.lawnmower_points`): a long flight folded into one map tile.
     """
@@ -126,6 +127,7 @@ class TrajectoryConfig:
     leg_spacing_m: float | None = None
     legs: int | None = None
     turn_rate_deg_s: float | None = None
+    roll_time_constant_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -345,7 +347,7 @@ _TRAJ_KEYS = {
     "file": ({"path"}, set()),
     "lawnmower": (
         {"start", "heading_deg", "leg_length_m", "leg_spacing_m", "legs", "altitude_m", "speed_mps"},
-        {"turn_rate_deg_s"},
+        {"turn_rate_deg_s", "roll_time_constant_s"},
     ),
 }
 
@@ -389,8 +391,9 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
         kw["leg_length_m"] = _number(ctx, "trajectory.leg_length_m", t["leg_length_m"], positive=True)
         kw["leg_spacing_m"] = _number(ctx, "trajectory.leg_spacing_m", t["leg_spacing_m"], positive=True)
         kw["legs"] = _int(ctx, "trajectory.legs", t["legs"], minimum=1)
-        if "turn_rate_deg_s" in t:
-            kw["turn_rate_deg_s"] = _number(ctx, "trajectory.turn_rate_deg_s", t["turn_rate_deg_s"], positive=True)
+        for key in ("turn_rate_deg_s", "roll_time_constant_s"):
+            if key in t:
+                kw[key] = _number(ctx, f"trajectory.{key}", t[key], positive=True)
     else:
         kw["path"] = _path(ctx, "trajectory.path", t["path"], base, allow_spec=False)
     return TrajectoryConfig(**kw)
