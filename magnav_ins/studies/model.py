@@ -85,7 +85,10 @@ def build_truth(sc: Scenario) -> NavTrajectory:
                 traj = simulate.survey_line(line["lat"], line["lon"], line["h"], tr.speed_mps, rate)
         elif tr.kind == "lawnmower":
             turn = (tr.turn_rate_deg_s or LAWNMOWER_TURN_RATE_DEG_S) * DEG_TO_RAD
-            traj = simulate.waypoints(lawnmower_points(tr), tr.speed_mps, rate, turn_rate=turn)  # type: ignore[arg-type]
+            tau = tr.roll_time_constant_s or LAWNMOWER_ROLL_TIME_CONSTANT_S
+            traj = simulate.waypoints(
+                lawnmower_points(tr), tr.speed_mps, rate, turn_rate=turn, roll_time_constant_s=tau
+            )  # type: ignore[arg-type]
         else:
             traj = simulate.trajectory_from_csv(tr.path)  # type: ignore[arg-type]
     except MagnavError as exc:
@@ -118,6 +121,10 @@ def ground_path_truth(sc: Scenario, rng: np.random.Generator | None = None) -> N
 
 #: default turn rate of a lawnmower flight between legs (deg/s; 3 deg/s = a rate-one turn)
 LAWNMOWER_TURN_RATE_DEG_S = 3.0
+#: default roll time constant of a lawnmower flight (s): a bank change of a large aircraft. With the 1 s of
+#: ``simulate.waypoints``' default, an INS sampled at 1-2 Hz cannot follow the roll-in of the turns: an ideal IMU at
+#: 1 Hz mechanised along the QLD flight ends 750 m off after 6000 s (2 Hz: 130 m); with 5 s, 83 m (2 Hz: 11 m)
+LAWNMOWER_ROLL_TIME_CONSTANT_S = 5.0
 
 
 def lawnmower_points(tr: Any) -> np.ndarray:
@@ -230,7 +237,9 @@ def build_map(sc: Scenario) -> Any:
     """The scenario's map: ``synthetic:random_field`` / ``synthetic:hallway`` (``maps.synthetic``, drawn from
     ``[map] options.seed``), a downloaded gravity grid when the options hold any of :data:`GRID_OPTIONS`
     (:func:`magnav_ins.studies.grids.read_gravity_grid`: ``unit``, ``altitude_m``, ``datum``, ``variable``,
-    ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load)."""
+    ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load). Options
+    ``error_sigma`` (map unit) and ``error_correlation_m`` (m, default two node spacings) attach a uniform error layer
+    (``GridMap.with_error_layer``): 0 when the study draws its readings from the map itself."""
     m = sc.map
     if m is None:
         raise ConfigError(f"{sc.source}: the scenario has no [map]")
@@ -277,6 +286,8 @@ def build_map(sc: Scenario) -> Any:
         )
     from ..maps import io as maps_io
 
+    err_sigma = opts.pop("error_sigma", None)
+    err_corr = opts.pop("error_correlation_m", None)
     try:
         if GRID_OPTIONS & set(opts):  # a downloaded gravity grid with an explicit unit (studies.grids)
             from .grids import read_gravity_grid
@@ -310,6 +321,12 @@ def build_map(sc: Scenario) -> Any:
         raise ConfigError(f"{sc.where('map.path')}: {exc}") from None
     if fmap.kind is not m.kind:
         raise ConfigError(f"{sc.where('map.kind')}: the map holds {fmap.kind.value}, the scenario says {m.kind.value}")
+    if err_sigma is not None:  # a stated error layer (e.g. 0 when the study draws its readings from this very map)
+        try:
+            corr = float(err_corr) if err_corr is not None else 2.0 * float(min(fmap.spacing_m))
+            fmap = fmap.with_error_layer(float(err_sigma), corr, "stated in the scenario's [map] options")
+        except (MagnavError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{sc.where('map.options')}: error_sigma / error_correlation_m: {exc}") from None
     return fmap
 
 

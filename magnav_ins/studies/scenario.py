@@ -268,6 +268,16 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         why="a rate-two turn is 6 deg/s",
         kinds=("lawnmower",),
     ),
+    ScenarioKey(
+        "trajectory",
+        "roll_time_constant_s",
+        "number",
+        "time constant of the roll into and out of a turn, s",
+        5.0,
+        lo=0.0,
+        lo_open=True,
+        kinds=("lawnmower",),
+    ),
     ScenarioKey("trajectory", "path", "string", "trajectory CSV path", REQUIRED, kinds=("file",)),
     ScenarioKey(
         "trajectory",
@@ -523,7 +533,8 @@ class TrajectoryConfig:
     those of the listed lines); ``columns`` maps our survey column names to the file's
     (:func:`magnav_ins.maps.io.read_survey`), ``geoid_m`` replaces the shipped geoid for orthometric heights. ``lawnmower`` (``start``
     [lat, lon] deg, ``heading_deg`` of the first leg, ``leg_length_m``, ``leg_spacing_m``, ``legs``, ``altitude_m``,
-    ``speed_mps``, optional ``turn_rate_deg_s``, default 3): parallel legs joined by turns, each next leg
+    ``speed_mps``, optional ``turn_rate_deg_s``, default 3, and ``roll_time_constant_s``, default 5): parallel legs
+    joined by turns, each next leg
     ``leg_spacing_m`` to the right, the pattern flown back and forth until ``duration_s``
     (:func:`magnav_ins.studies.model.lawnmower_points`): a long flight folded into one map tile.
     """
@@ -544,6 +555,7 @@ class TrajectoryConfig:
     leg_spacing_m: float | None = None
     legs: int | None = None
     turn_rate_deg_s: float | None = None
+    roll_time_constant_s: float | None = None
     line_type: str | None = None
     columns: tuple[tuple[str, str], ...] = ()
     geoid_m: float | None = None
@@ -846,7 +858,7 @@ _TRAJ_KEYS = {
     "file": ({"path"}, set()),
     "lawnmower": (
         {"start", "heading_deg", "leg_length_m", "leg_spacing_m", "legs", "altitude_m", "speed_mps"},
-        {"turn_rate_deg_s"},
+        {"turn_rate_deg_s", "roll_time_constant_s"},
     ),
     "ground_path": ({"origin", "points_m", "speed_mps"}, {"altitude_m", "corner_radius_m", "wander"}),
 }
@@ -904,8 +916,9 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
         kw["leg_length_m"] = _number(ctx, "trajectory.leg_length_m", t["leg_length_m"], positive=True)
         kw["leg_spacing_m"] = _number(ctx, "trajectory.leg_spacing_m", t["leg_spacing_m"], positive=True)
         kw["legs"] = _int(ctx, "trajectory.legs", t["legs"], minimum=1)
-        if "turn_rate_deg_s" in t:
-            kw["turn_rate_deg_s"] = _number(ctx, "trajectory.turn_rate_deg_s", t["turn_rate_deg_s"], positive=True)
+        for key in ("turn_rate_deg_s", "roll_time_constant_s"):
+            if key in t:
+                kw[key] = _number(ctx, f"trajectory.{key}", t[key], positive=True)
     elif kind == "ground_path":
         kw["origin_deg"] = _latlon(ctx, "trajectory.origin", t["origin"])
         pts = t["points_m"]
