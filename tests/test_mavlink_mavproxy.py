@@ -101,9 +101,12 @@ def osborne():
 
 
 def _bridge(port: int, fmap, date: str, output: str, key: bytes | None = None) -> Bridge:
-    """As in test_mavlink_bridge.py: the bridge's link is ``udpin``, the autopilot is system 1 component 1."""
+    """As in test_mavlink_bridge.py: the bridge's link is ``udpin``, the autopilot is system 1 component 1; GPS_INPUT
+    goes to GPS2 (GPS_RAW_INT is the emulator's own GNSS) and positions are sent while that GNSS is healthy."""
     link = MavLink(f"udpin:127.0.0.1:{port}", source_system=1, peer_system=1, peer_component=1, signing_key=key)
-    config = BridgeConfig(output=output, output_rate_hz=5.0, init_sigma_m=10.0)
+    config = BridgeConfig(
+        output=output, output_rate_hz=5.0, init_sigma_m=10.0, gps_id=1, send_while_gnss="yes", sample_type="mean"
+    )
 
     def factory(nav0, sigma_m):
         return make_online_pipeline(nav0, sigma_m, fmap, grade="tactical", matcher="mlr", fusion="ukf")
@@ -183,7 +186,7 @@ def test_bridges_behind_mavproxy_get_imu_and_reach_the_autopilot(osborne, tmp_pa
     assert asks and all(c.compid == MAV_COMP_ID_ONBOARD_COMPUTER for c in asks)
     assert rec.imu_sent > 200
     for b in bridges.values():  # the IMU crossed MAVProxy to both outputs
-        assert b.health.imu_samples > 200 and b.health.state == "running" and b.health.healthy
+        assert b.health.imu_samples > 200 and b.health.state in ("aligning", "running") and b.health.healthy
         assert b.link.stats.bad_data == 0 and b.link.stats.rejected_signature == 0
     # heartbeats of the companion computer (not MAVProxy's own GCS heartbeats) and positions came back within 5 s
     assert rec.first_heartbeat_s is not None and rec.first_heartbeat_s < 5.0
@@ -233,6 +236,10 @@ def test_cli_bridge_sends_heartbeats_and_gps_input_and_exits_0(osborne):
         "50",
         "--date",
         flight.date,
+        "--gps-id",  # GPS2: the emulator's GPS_RAW_INT is the autopilot's own GNSS, the bridge's initial position
+        "1",
+        "--send-while-gnss",
+        "yes",
     )
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out, err = OutputReader(proc.stdout), OutputReader(proc.stderr)
