@@ -190,6 +190,9 @@ def test_signing_enabled_drops_the_unsigned_autopilot(osborne):
     with AutopilotEmulator(ap, flight.truth, flight.imu, flight.mag_b_nt):
         bridge.run(duration_s=2.0)
     assert bridge.health.imu_samples == 0 and bridge.health.state == "waiting_for_imu"
-    assert bridge.link.stats.rejected_signature > 50
+    st = bridge.link.stats
+    assert st.rejected_signature > 50
+    # every one of them unsigned (the autopilot does not sign), none counted as junk
+    assert st.rejected_unsigned == st.rejected_signature and st.bad_data == 0
     bridge.link.close()
     ap.close()

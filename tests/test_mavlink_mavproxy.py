@@ -272,8 +272,10 @@ def test_cli_bridge_sends_heartbeats_and_gps_input_and_exits_0(osborne):
     [
         (["--init=-21.9,140.6,400"], "--init"),  # three numbers instead of four; "=" as argparse needs for "-"
         (["--signing-key", "no/such/key.bin"], "no/such/key.bin"),
+        (["--connect", "udpin:127.0.0.1:notaport"], "port 'notaport' is not a number"),
+        (["--connect", "telnet://x"], "expected udpin:HOST:PORT"),
     ],
-    ids=["bad-init", "unreadable-signing-key"],
+    ids=["bad-init", "unreadable-signing-key", "bad-port", "bad-url"],
 )
 def test_cli_bridge_bad_option_is_one_line_and_exit_2(extra, expected, tmp_path):
     port = free_udp_port()
@@ -283,3 +285,39 @@ def test_cli_bridge_bad_option_is_one_line_and_exit_2(extra, expected, tmp_path)
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("magnav-ins: error:") and expected in lines[0], res.stderr
     assert "Traceback" not in res.stderr and res.stdout == ""
+
+
+def test_cli_bridge_sigterm_stops_cleanly_with_its_summary(osborne, tmp_path):
+    """A service manager stops the bridge with SIGTERM: it closes the link, prints its summary, writes the summary
+    JSON and exits 0 within a few seconds (it used to die at once with status 143)."""
+    import json
+    import signal
+
+    flight = flight_over_map(
+        osborne, start=START, heading=0.0, speed_mps=0.0, duration_s=60.0, rate_hz=50.0, altitude_m=400.0, seed=19
+    )
+    port = free_udp_port()
+    summary = tmp_path / "summary.json"
+    cmd = _cli(
+        "bridge", "--connect", f"udpin:127.0.0.1:{port}", "--map", "builtin:osborne-magnetic", "--imu-rate", "50",
+        "--date", flight.date, "--gps-id", "1", "--summary-json", str(summary),
+    )  # fmt: skip
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out, err = OutputReader(proc.stdout), OutputReader(proc.stderr)
+    ap = MavLink(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        assert err.wait_for(r"bridge on udpin", 240.0) is not None, err.text()
+        with AutopilotEmulator(ap, flight.truth, flight.imu, flight.mag_b_nt):
+            assert err.wait_for(r"magnav: aligning", 20.0) is not None, err.text()
+            t0 = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            rc = proc.wait(timeout=10.0)
+            stopped_in = time.monotonic() - t0
+    finally:
+        stop_process(proc)
+        ap.close()
+    assert rc == 0 and stopped_in < 10.0, (rc, stopped_in, err.text()[-500:])
+    assert "stopped by SIGTERM" in err.text()
+    assert sum(line.startswith("bridge stopped:") for line in out.text().splitlines()) == 1, out.text()
+    doc = json.loads(summary.read_text())
+    assert doc["stopped_by"] == "SIGTERM" and doc["imu_samples"] > 100 and doc["state"] == "aligning"

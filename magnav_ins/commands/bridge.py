@@ -98,6 +98,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--duration", type=float, default=None, help="stop after this many seconds (default: run until stopped)"
     )
     p.add_argument("--summary-json", default=None, metavar="FILE", help="write the stop summary as JSON")
+    p.add_argument(
+        "--track-csv",
+        default=None,
+        metavar="FILE",
+        help="write every output (wall time, lat, lon, height, sigma, trusted, sent, state, aiding) as CSV",
+    )
     p.set_defaults(handler=run)
 
 
@@ -116,6 +122,35 @@ def _parse_init(text: str | None) -> tuple[float, float, float, float] | None:
     if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 360.0):
         raise ConfigError(f"--init {text!r}: latitude must be in [-90, 90] and longitude in [-180, 360] degrees")
     return math.radians(lat), math.radians(lon), alt, math.radians(yaw)
+
+
+class _TrackWriter:
+    """``--track-csv``: one line per output, flushed every second (the bridge may be stopped at any time; a
+    track is a log, not a result, so it is written in place)."""
+
+    COLUMNS = ("t_wall", "t", "lat_deg", "lon_deg", "h_m", "sigma_h_m", "hpl_m", "trusted", "sent", "state", "aiding")
+
+    def __init__(self, path: str) -> None:
+        from ..core.errors import ConfigError
+
+        try:
+            self._fh = open(path, "w", encoding="utf-8")  # noqa: SIM115 - closed by close()
+        except OSError as exc:
+            raise ConfigError(f"--track-csv {path}: cannot write ({exc.strerror})") from None
+        self._fh.write(",".join(self.COLUMNS) + "\n")
+        self._last_flush = 0.0
+
+    def __call__(self, o: dict) -> None:
+        self._fh.write(
+            f"{o['t_wall']:.3f},{o['t']:.4f},{math.degrees(o['lat']):.8f},{math.degrees(o['lon']):.8f},{o['h']:.2f},"
+            f"{o['sigma_h']:.2f},{o['hpl']:.2f},{int(o['trusted'])},{int(o['sent'])},{o['state']},{o['aiding']}\n"
+        )
+        if o["t_wall"] - self._last_flush > 1.0:
+            self._fh.flush()
+            self._last_flush = o["t_wall"]
+
+    def close(self) -> None:
+        self._fh.close()
 
 
 def summary_line(health, stats: dict) -> str:  # noqa: ANN001
@@ -197,13 +232,16 @@ def run(args: argparse.Namespace) -> int:
         stop["signal"] = signal.Signals(signum).name
 
     previous = signal.signal(signal.SIGTERM, on_signal)
+    track = _TrackWriter(args.track_csv) if args.track_csv else None
     try:
-        bridge = Bridge(link, config, factory, ScalarAnomalyModel(date, calibration), fmap=fmap)
+        bridge = Bridge(link, config, factory, ScalarAnomalyModel(date, calibration), fmap=fmap, on_output=track)
         logging.info("bridge on %s, map %s, output %s at %.1f Hz", args.connect, args.map, args.output, args.rate)
         health = bridge.run(args.duration, should_stop=lambda: stop["signal"] is not None)
     finally:
         signal.signal(signal.SIGTERM, previous)
         link.close()
+        if track is not None:
+            track.close()
     if stop["signal"]:
         logging.info("stopped by %s", stop["signal"])
     stats = link.stats.as_dict()

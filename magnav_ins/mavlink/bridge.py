@@ -331,8 +331,11 @@ class Bridge:
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
         fmap: Any = None,
+        on_output: Callable[[dict[str, Any]], None] | None = None,
     ) -> None:
         self.link = link
+        #: called at every output time with what the solution was and what was sent (``--track-csv``)
+        self.on_output = on_output
         self.config = config
         self.make_pipeline = make_pipeline
         self.field_model = field_model
@@ -1057,7 +1060,14 @@ class Bridge:
             self._set_state("running" if trusted else "degraded", trusted, reason)
         elif self.health.state == "aligning" and self.health.healthy != trusted:
             self._set_state("aligning", trusted, reason)
-        if self._gnss.healthy and c.gnss_aiding and not self._send_while_gnss():
+        quiet = self._gnss.healthy and c.gnss_aiding and not self._send_while_gnss()
+        if self.on_output is not None:
+            self.on_output(
+                {"t_wall": self._wall(), "t": s.t, "lat": s.lat, "lon": s.lon, "h": s.h, "sigma_h": s.sigma_h,
+                 "hpl": s.hpl_m, "trusted": trusted, "sent": not quiet and (trusted or c.output != "odometry"),
+                 "state": self.health.state, "aiding": self.health.aiding}
+            )  # fmt: skip
+        if quiet:
             self._no_fix()  # the autopilot has its own GNSS: do not compete with it
             return
         if not trusted:
