@@ -18,6 +18,7 @@ PNG figures.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -30,8 +31,9 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.atomic import atomic_path, write_text_atomic
-from ..core.errors import ConfigError
+from ..core.atomic import atomic_path, check_output_dir, write_text_atomic
+from ..core.errors import ConfigError, OutputError
+from ..core.signals import deferred
 from ..core.units import RAD_TO_DEG
 from . import metrics as M
 from .scenario import FREE_INERTIAL
@@ -47,7 +49,8 @@ class EstimatorOutput:
 
     ``lat``, ``lon`` (N,) rad; ``cov_ne`` (N,2,2) m^2 horizontal covariance or None (free inertial without a
     filter). Fixes: ``fix_t`` (K,) s, ``fix_lat``, ``fix_lon`` (K,) rad (NaN for "no fix"), ``fix_cov_ne``
-    (K,2,2) m^2, ``fix_available`` (K,) bool; one entry per fix attempt.
+    (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the reason of each "no fix" ("" for a fix); one
+    entry per fix attempt. ``fix_accepted`` (K,) bool: whether the fuser applied each fix (empty when unknown).
     """
 
     name: str
@@ -61,6 +64,8 @@ class EstimatorOutput:
     fix_lon: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     fix_cov_ne: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2, 2)))
     fix_available: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    fix_reason: tuple[str, ...] = ()
+    fix_accepted: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
 
 
 @dataclass(frozen=True)
@@ -104,6 +109,13 @@ class EstimatorSummary:
     fix_sigma_e: NDArray[np.float32]
     fix_corr_ne: NDArray[np.float32]
     fix_available: NDArray[np.bool_]
+    no_fix_reasons: dict[str, int] = field(default_factory=dict)
+
+
+def reason_category(reason: str) -> str:
+    """The class of a "no fix" reason: the text before its first colon (``"flat map"``, ``"diverged"``,
+    ``"off the map"``, ...), as :func:`magnav_ins.aiding.matchers.metrics.no_fix_reasons` counts them."""
+    return reason.split(":", 1)[0].strip() or "unspecified"
 
 
 @dataclass
@@ -170,11 +182,17 @@ def summarise_run(
             fix_errors_m=np.hypot(fdn, fde)[fix_avail] if len(fix_t) else np.zeros(0),
             fix_attempts=len(fix_t),
             divergent=M.is_divergent(e, e_free),
+            first_fix_index=M.first_fix_index(t, fix_t, np.asarray(est.fix_accepted, bool)),
         )
         sn, se, rho = _cov_parts(cov, len(sel))
+        reasons: dict[str, int] = {}
+        for a, why in zip(fix_avail, est.fix_reason, strict=False):
+            if not a:
+                c = reason_category(why)
+                reasons[c] = reasons.get(c, 0) + 1
         res[est.name] = EstimatorSummary(
             est.matcher, est.fusion, rm, dn.astype(np.float32), de.astype(np.float32), sn, se, rho,
-            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail,
+            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail, reasons,
         )  # fmt: skip
     return RunSummary(index, t, lat_t, lon_t, res, wall_s)
 
@@ -224,20 +242,65 @@ def execute(
                 results[i] = _run_task(model, i, ss, max_samples)
                 bar.update(1)
         else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
-                try:
-                    for fut in as_completed(futs):
-                        results[futs[fut]] = fut.result()
-                        bar.update(1)
-                except BrokenProcessPool as exc:
-                    raise RuntimeError(
-                        "a worker process died during a Monte Carlo run (killed by the OS, e.g. out of memory); "
-                        "nothing was written - retry with fewer --jobs"
-                    ) from exc
+            _execute_pool(model, seeds, jobs, max_samples, results, bar.update)
     finally:
         bar.close()
     return [r for r in results if r is not None]
+
+
+def _execute_pool(
+    model: StudyModel,
+    seeds: Sequence[np.random.SeedSequence],
+    jobs: int,
+    max_samples: int,
+    results: list[RunSummary | None],
+    progress: Callable[[int], Any],
+) -> None:
+    """The runs in ``jobs`` local worker processes. Workers ignore SIGINT and die with their parent
+    (:func:`magnav_ins.core.signals.worker_init`); on any exception here (Ctrl-C, SIGTERM, a failed run) the queued
+    runs are cancelled and the workers are terminated at once, not waited for: nothing is left running."""
+    import os
+
+    from ..core.signals import worker_init
+
+    pool = ProcessPoolExecutor(max_workers=jobs, initializer=worker_init, initargs=(os.getpid(),))
+    try:
+        futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
+        for fut in as_completed(futs):
+            results[futs[fut]] = fut.result()
+            progress(1)
+    except BrokenProcessPool as exc:
+        _stop_pool(pool)
+        raise RuntimeError(
+            "a worker process died during a Monte Carlo run (killed by the OS, e.g. out of memory); "
+            "nothing was written - retry with fewer --jobs"
+        ) from exc
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+#: seconds given to closing the connection to a Dask scheduler
+_DASK_CLOSE_S = 3.0
+#: seconds a terminated worker gets to exit before it is killed
+_WORKER_STOP_S = 2.0
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what is queued and end every worker now: SIGTERM, then SIGKILL after ``_WORKER_STOP_S``.
+    (:class:`ProcessPoolExecutor` has no public way to stop running tasks; its ``_processes`` map is read once.)"""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + _WORKER_STOP_S
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)
 
 
 def _execute_dask(
@@ -256,6 +319,7 @@ def _execute_dask(
         client = Client(scheduler) if own else scheduler
     except OSError as exc:
         raise ConfigError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})") from None
+    futs: list[Any] = []
     try:
         [model_f] = client.scatter([model], broadcast=True)
         futs = [client.submit(_run_task, model_f, i, ss, max_samples, pure=False) for i, ss in enumerate(seeds)]
@@ -263,14 +327,45 @@ def _execute_dask(
         for fut in dask_completed(futs):
             results[index[fut.key]] = fut.result()
             progress(1)
+    except BaseException:
+        # Ctrl-C, SIGTERM or a failed run: withdraw every run from the cluster (queued ones never start; a running
+        # one finishes on its worker and is discarded), so the cluster is free for the next study
+        if futs:
+            with contextlib.suppress(Exception):
+                client.cancel(futs, force=True)
+        raise
     finally:
         if own:
-            client.close()
+            with contextlib.suppress(Exception):
+                client.close(timeout=_DASK_CLOSE_S)
 
 
 # ------------------------------------------------------------------------------------------------ aggregation
-def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: str = "") -> dict[str, Any]:
-    """The ``metrics.json`` document (see :mod:`.metrics` for the definitions)."""
+def fix_warnings(doc: dict[str, Any]) -> list[str]:
+    """One line per estimator with a matcher that never got a fix: no attempt at all, or attempts that all ended
+    in "no fix" (with their counted reasons, as the replay summary gives them)."""
+    out: list[str] = []
+    for name, m in doc["estimators"].items():
+        if m.get("matcher") is None:
+            continue
+        attempts, issued = m.get("fix_attempts", 0), m.get("fixes_issued", 0)
+        if attempts == 0:
+            out.append(
+                f"estimator {name!r}: no fix attempt in {doc['runs']} run(s) (no reading on the map, or fewer "
+                "readings than the matcher's window): it ran unaided"
+            )
+        elif issued == 0:
+            counts = sorted((m.get("no_fix_reasons") or {}).items(), key=lambda rn: -rn[1])
+            why = "; ".join(f"{r} x{n}" for r, n in counts) or "no reason given"
+            out.append(f"estimator {name!r}: 0 of {attempts} fix attempts gave a fix ({why}): it ran unaided")
+    return out
+
+
+def study_metrics(
+    summaries: list[RunSummary], seed: int, wall_s: float, name: str = "", warnings: Sequence[str] = ()
+) -> dict[str, Any]:
+    """The ``metrics.json`` document (see :mod:`.metrics` for the definitions). ``warnings``: lines found before
+    the runs (e.g. a trajectory that never crosses the map); :func:`fix_warnings` adds its own."""
     names = list(summaries[0].estimators)
     doc: dict[str, Any] = {
         "name": name,
@@ -283,10 +378,16 @@ def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: s
     for nm in names:
         es = [s.estimators[nm] for s in summaries]
         entry = M.aggregate([e.metrics for e in es], es[0].matcher, es[0].fusion)
+        counts: dict[str, int] = {}
+        for e in es:  # how often each "no fix" reason occurred, over all runs (issue 16)
+            for c, k in e.no_fix_reasons.items():
+                counts[c] = counts.get(c, 0) + k
+        entry["no_fix_reasons"] = dict(sorted(counts.items()))
         if nm == FREE_INERTIAL:
             doc["free_inertial"] = entry
         else:
             doc["estimators"][nm] = entry
+    doc["warnings"] = [*warnings, *fix_warnings(doc)]
     return doc
 
 
@@ -363,9 +464,14 @@ def write_outputs(
     from . import plots as P
     from . import reports
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    out = check_output_dir(out_dir, option=None)
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    ok = False
     try:
         ds = runs_dataset(summaries, doc.get("name", ""))
         with atomic_path(stage / "runs.nc") as tmp:
@@ -375,13 +481,18 @@ def write_outputs(
         write_text_atomic(stage / "metrics.json", json.dumps(doc, indent=2, allow_nan=False) + "\n")
         names = ["runs.nc", *(f.name for f in figures), "report.md", "metrics.json"]  # metrics.json last
         written = []
-        for name in names:
-            os.chmod(stage / name, 0o644)
-            os.replace(stage / name, out / name)
-            written.append(out / name)
+        with deferred():  # a signal lands before or after the whole set is moved into place, not half-way
+            for name in names:
+                os.chmod(stage / name, 0o644)
+                os.replace(stage / name, out / name)
+                written.append(out / name)
+        ok = True
         return written
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        if created and not ok:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only if empty: the folder this call made for outputs that never came
 
 
 def run_study(
@@ -396,11 +507,16 @@ def run_study(
     fmap: Any = None,
     max_samples: int = DEFAULT_MAX_SAMPLES,
     command: str | None = None,
+    warnings: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Execute the study and (if ``out_dir``) write its outputs. Returns the ``metrics.json`` document."""
+    """Execute the study and (if ``out_dir``) write its outputs. Returns the ``metrics.json`` document (with
+    ``warnings``: the given lines and :func:`fix_warnings`)."""
     t0 = time.perf_counter()
     summaries = execute(model, runs, seed, jobs, scheduler, quiet, max_samples)
-    doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name)
+    doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name, warnings)
+    bound = getattr(model, "crlb_metrics", None)
+    if callable(bound):  # the flight's posterior CRLB, the limit column of the comparisons (studies.crlb)
+        doc.update(bound())
     if out_dir is not None:
         write_outputs(out_dir, summaries, doc, plots=plots, fmap=fmap, command=command)
     return doc

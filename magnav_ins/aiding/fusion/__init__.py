@@ -1,5 +1,5 @@
 """Fusion back ends behind :class:`magnav_ins.core.protocols.Fuser`: a UKF (filterpy), a factor graph (GTSAM,
-iSAM2 + batch LM) and a free-inertial baseline. :func:`make_fuser` builds one by name without importing the
+iSAM2 + batch LM), a free-inertial baseline and Storms' 2-D constant-velocity Kalman filter (``cv_kf``). :func:`make_fuser` builds one by name without importing the
 other back ends' libraries; :func:`check_fusion_options` validates a fusion spec without building (or importing)
 anything."""
 
@@ -11,16 +11,19 @@ from ...core.errors import ConfigError
 from ...core.types import NavEstimate
 from .common import ExtraStates, ImuNoise, LocalFrame
 
-FUSER_KINDS = ("ukf", "graph", "free_inertial")
+FUSER_KINDS = ("ukf", "graph", "free_inertial", "cv_kf")
 
 #: optional error states of the inertial fusers (:class:`common.ExtraStates`)
 EXTRA_STATE_OPTIONS = ("scale_factors", "scale_factor_tau_s", "map_bias_sigma_m", "map_bias_tau_s", "map_bias_sources")
 
 _CORE = ("cov_step_s", "buffer_s", "altitude_hold", "keep_history")
 
+#: fault detection, exclusion and protection level (:class:`integrity.FaultMonitor`)
+INTEGRITY_OPTIONS = ("reset_after", "fault_window", "fault_window_s", "fault_probability", "integrity_risk")
+
 #: the keyword options each fuser's constructor takes (tested against the constructors' signatures)
 FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
-    "ukf": ("gate_probability", *_CORE, "reset_after", "alpha", "beta", "kappa", *EXTRA_STATE_OPTIONS),
+    "ukf": ("gate_probability", *_CORE, *INTEGRITY_OPTIONS, "alpha", "beta", "kappa", *EXTRA_STATE_OPTIONS),
     "graph": (
         "gate_probability",
         "huber_k",
@@ -29,12 +32,13 @@ FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
         "relinearize_skip",
         "gravity_update_s",
         "integration_sigma",
-        "reset_after",
+        *INTEGRITY_OPTIONS,
         "max_preintegration_rad",
         "altitude_hold",
         "altitude_hold_sigma_m",
     ),
-    "free_inertial": ("gate_probability", *_CORE, *EXTRA_STATE_OPTIONS),
+    "free_inertial": ("gate_probability", *_CORE, "integrity_risk", *EXTRA_STATE_OPTIONS),
+    "cv_kf": ("accel_sigma_mps2", "turn_command", "gate_probability", "altitude_hold"),
 }
 
 
@@ -71,6 +75,10 @@ def make_fuser(kind: str, init: NavEstimate, noise: ImuNoise, **options):
         from .graph import GraphFuser
 
         return GraphFuser(init, noise, **options)
+    if kind == "cv_kf":
+        from .cv_kf import CvKalmanFuser
+
+        return CvKalmanFuser(init, noise, **options)
     from .free_inertial import FreeInertial
 
     return FreeInertial(init, noise, **options)
@@ -80,6 +88,7 @@ __all__ = [
     "EXTRA_STATE_OPTIONS",
     "FUSER_KINDS",
     "FUSER_OPTIONS",
+    "INTEGRITY_OPTIONS",
     "ExtraStates",
     "ImuNoise",
     "LocalFrame",
