@@ -166,7 +166,15 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         kinds=("ground_path",),
     ),
     ScenarioKey(
-        "trajectory", "altitude_m", "number", "ellipsoidal height of a ground path, m", 0.0, kinds=("ground_path",)
+        "trajectory",
+        "altitude_m",
+        "number",
+        "ellipsoidal height of a ground path, m",
+        0.0,
+        lo=-11000.0,
+        hi=1e5,
+        why="from the deepest ocean to the edge of space",
+        kinds=("ground_path",),
     ),
     ScenarioKey(
         "trajectory",
