@@ -469,7 +469,20 @@ SCHEMA: tuple[ScenarioKey, ...] = (
     ),
     ScenarioKey("estimator", "imu_grade", "string", "this estimator's own IMU grade", "[imu] grade"),
 )
-_SCHEMA_BY_PATH = {k.path: k for k in SCHEMA}
+
+
+def _by_path(keys: tuple[ScenarioKey, ...]) -> dict[str, ScenarioKey]:
+    """Key path -> entry. A key documented once per trajectory kind (``altitude_m``) is range-checked by the first
+    of its entries that states a range."""
+    out: dict[str, ScenarioKey] = {}
+    for k in keys:
+        old = out.get(k.path)
+        if old is None or (old.lo is None and old.hi is None and (k.lo is not None or k.hi is not None)):
+            out[k.path] = k
+    return out
+
+
+_SCHEMA_BY_PATH = _by_path(SCHEMA)
 
 
 # --------------------------------------------------------------------------------------------- line scan
