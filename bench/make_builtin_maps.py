@@ -6,6 +6,8 @@
   made ellipsoidal with the EIGEN-6C4 geoid (h = H + N), gridded at 100 m from the east-west flight lines only
   (the 22 north-south tie lines, found by line azimuth, are excluded), float32, compressed.
 * ``osborne-tie-lines.csv.xz``: the tie lines' real readings (line, lat, lon, ellipsoidal height, anomaly).
+* ``eigen6c4-geoid-10arcmin.nc``: the EIGEN-6C4 geoid (Fatiando a Terra / GFZ ICGEM, CC-BY-4.0), global 10' grid,
+  int16 in 0.1 m as published, without the duplicated 180 deg column (:mod:`magnav_ins.maps.geoid`).
 * ``eigen6c4-australia-se.nc``: EIGEN-6C4 full gravity at 10 km (Fatiando a Terra / GFZ ICGEM, CC-BY-4.0) minus WGS-84
   normal gravity at 10 km = gravity disturbance (mGal), lat -40..-32, lon 142..153 deg.
 """
@@ -25,7 +27,9 @@ from magnav_ins.core.atomic import atomic_path
 from magnav_ins.core.types import FieldKind
 from magnav_ins.core.units import DEG_TO_RAD, MPS2_TO_MGAL
 from magnav_ins.ins.earth import normal_gravity
+from magnav_ins.maps import geoid
 from magnav_ins.maps.build import cross_lines, grid_survey, tie_line_misfit
+from magnav_ins.maps.geoid import GEOID_FILE
 from magnav_ins.maps.grid import GridMap
 from magnav_ins.maps.io import read_survey, write_map
 
@@ -37,19 +41,43 @@ SE_AUS_REGION_DEG = (-40.0, -32.0, 142.0, 153.0)  # lat_min, lat_max, lon_min, l
 EIGEN_HEIGHT_M = 10_000.0
 
 
-def geoid_undulation(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
-    """EIGEN-6C4 geoid height (m above WGS84) at lat, lon (rad), bilinear on the 10' grid."""
-    g = xr.load_dataset(SHARED / "earth-geoid-10arcmin.nc").geoid
-    pts = {
-        "latitude": xr.DataArray(np.rad2deg(lat), dims="p"),
-        "longitude": xr.DataArray(np.rad2deg(lon), dims="p"),
+def make_geoid() -> dict:
+    """The shipped geoid: the published int16 (0.1 m) grid, the duplicated lon = 180 deg column dropped."""
+    ds = xr.open_dataset(SHARED / "earth-geoid-10arcmin.nc", mask_and_scale=False)
+    raw = np.asarray(ds.geoid.values)
+    if raw.dtype != np.int16 or float(ds.geoid.attrs["scale_factor"]) != 0.1 or np.any(raw[:, 0] != raw[:, -1]):
+        raise SystemExit("earth-geoid-10arcmin.nc: unexpected encoding (expected int16 x 0.1 m, lon -180..180)")
+    attrs = {
+        "units": "m",
+        "scale_factor": 0.1,
+        "long_name": "geoid height above the WGS84 ellipsoid (EIGEN-6C4, degree 720, tide-free)",
+        "standard_name": "geoid_height_above_reference_ellipsoid",
     }
-    return np.asarray(g.interp(pts).values, dtype=float)
+    out = xr.Dataset(
+        {"geoid": (("latitude", "longitude"), raw[:, :-1], attrs)},
+        coords={
+            "latitude": ("latitude", np.asarray(ds.latitude.values, float), {"units": "degrees_north"}),
+            "longitude": ("longitude", np.asarray(ds.longitude.values[:-1], float), {"units": "degrees_east"}),
+        },
+        attrs={
+            "Conventions": "CF-1.8",
+            "title": "EIGEN-6C4 geoid height above WGS84, 10 arc-minute grid",
+            "source": "Fatiando a Terra earth-geoid-10arcmin v1 (EIGEN-6C4, GFZ/ICGEM, doi:10.5880/icgem.2015.1)",
+            "license": "CC-BY-4.0",
+            "made_by": "bench/make_builtin_maps.py",
+        },
+    )
+    path = OUT / GEOID_FILE
+    with atomic_path(path) as tmp:
+        out.to_netcdf(tmp, encoding={"geoid": {"zlib": True, "complevel": 9, "shuffle": True, "dtype": "int16"}})
+        tmp.chmod(0o644)
+    geoid._grid.cache_clear()
+    return {"geoid_shape": list(raw[:, :-1].shape), "geoid_bytes": path.stat().st_size}
 
 
 def make_osborne() -> dict:
     t0 = time.perf_counter()
-    survey = read_survey(SHARED / "osborne-magnetic.csv.xz", geoid_undulation_m=geoid_undulation)
+    survey = read_survey(SHARED / "osborne-magnetic.csv.xz")  # orthometric heights through the shipped geoid
     ties = cross_lines(survey)
     fmap = grid_survey(survey, OSBORNE_SPACING_M, exclude_lines=ties, name="osborne-magnetic")
     fmap.metadata.update(
@@ -127,7 +155,7 @@ def main() -> None:
     args = ap.parse_args()
     if not SHARED.is_dir():
         raise SystemExit(f"{SHARED} not found: ../shared/data must sit beside the project")
-    res = {**make_eigen(), **make_osborne()}
+    res = {**make_geoid(), **make_eigen(), **make_osborne()}
     print(json.dumps(res) if args.json else json.dumps(res, indent=1))
 
 

@@ -1,6 +1,6 @@
 """Map interpolation speed (vs scipy) and Osborne survey gridding: time and tie-line cross-validation.
 
-    python bench/maps.py [--json] [--points N] [--no-survey]
+    python bench/maps.py [--json] [--points N] [--no-survey] [--only interp|osborne|rio]
 
 * 1 M random bilinear / bicubic value queries and bilinear gradients on a 500 x 600 geodetic grid, against
   ``scipy.interpolate.RegularGridInterpolator`` (linear) and ``scipy.ndimage.map_coordinates`` (cubic spline, order 3)
@@ -8,6 +8,8 @@
 * Osborne (``../shared/data/fatiando/osborne-magnetic.csv.xz``): read, find the tie lines by azimuth, grid the full
   survey at 50 m (timed), then grid the east-west flight lines only and predict the 22 north-south tie lines'
   readings: RMS misfit overall and per line, for the bidirectional gridder and for linear triangulation.
+* Rio de Janeiro 1978 (``../shared/data/rio_magnetic/``, read as downloaded through a column mapping): grid the flight
+  lines (``LINE``), predict the tie lines (``TIE``).
 """
 
 from __future__ import annotations
@@ -163,15 +165,71 @@ def bench_osborne() -> dict:
     return out
 
 
+def bench_rio() -> dict:
+    """Rio de Janeiro 1978 (``../shared/data/rio_magnetic/rio-magnetic.csv.xz``, CC-BY-NC: benchmarks only): grid the
+    128 N-S flight lines (``line_type`` LINE) and predict the 9 E-W tie lines (TIE) - a case not tuned on."""
+    from magnav_ins.maps.build import crossover_differences, grid_survey, tie_line_misfit
+    from magnav_ins.maps.io import read_survey, select_lines
+
+    path = SHARED / "rio_magnetic" / "rio-magnetic.csv.xz"
+    if not path.is_file():
+        return {"rio": "skipped: ../shared/data not found"}
+    s = read_survey(path, columns={"height_ellipsoidal_m": "height_ell_m", "line": "line_number"})
+    ties = s.ids_of_type("TIE")
+    flight = select_lines(s, line_type="LINE")
+    xo = crossover_differences(s, ties, max_distance_m=50.0)
+    out: dict = {
+        "rio_readings": len(s),
+        "rio_tie_lines": ties,
+        "rio_tie_field_std_nt": float(np.std(s.value[np.isin(s.line, ties)])),
+        "rio_crossovers_flight_minus_tie_50m": {
+            "n": int(xo.size),
+            "mean_nt": float(xo.mean()),
+            "std_nt": float(xo.std()),
+        },
+    }
+    for label, method, spacing in (
+        ("bidirectional_100m", "bidirectional", 100.0),
+        ("bidirectional_250m", "bidirectional", 250.0),
+        ("bidirectional_500m", "bidirectional", 500.0),
+        ("linear_triangulation_250m", "linear", 250.0),
+    ):
+        t = time.perf_counter()
+        m = grid_survey(flight, spacing, method=method)
+        tg = time.perf_counter() - t
+        r = tie_line_misfit(m, s, ties)
+        n = sum(v["n"] for v in r.values())
+        mean = float(sum(v["mean"] * v["n"] for v in r.values() if v["n"]) / n)
+        rms = float(np.sqrt(sum(v["rms"] ** 2 * v["n"] for v in r.values() if v["n"]) / n))
+        out[label] = {
+            "grid_s": tg,
+            "rms_nt": rms,
+            "mean_nt": mean,
+            "std_nt": float(np.sqrt(max(rms**2 - mean**2, 0.0))),
+            "points": n,
+            "off_map": int(sum(v["n_off"] for v in r.values())),
+            "per_line": {
+                str(k): {"rms": round(v["rms"], 2), "mean": round(v["mean"], 2), "std": round(v["std"], 2), "n": v["n"]}
+                for k, v in r.items()
+            },
+        }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     ap.add_argument("--points", type=int, default=1_000_000)
-    ap.add_argument("--no-survey", action="store_true", help="skip the Osborne gridding part")
+    ap.add_argument("--no-survey", action="store_true", help="skip the Osborne and Rio gridding parts")
+    ap.add_argument("--only", choices=["interp", "osborne", "rio"], default=None, help="run one part only")
     args = ap.parse_args()
-    res = {"interp": bench_interp(args.points)}
-    if not args.no_survey:
+    res = {}
+    if args.only in (None, "interp"):
+        res["interp"] = bench_interp(args.points)
+    if not args.no_survey and args.only in (None, "osborne"):
         res["osborne"] = bench_osborne()
+    if not args.no_survey and args.only in (None, "rio"):
+        res["rio"] = bench_rio()
     if args.json:
         print(json.dumps(res))
     else:

@@ -1,7 +1,10 @@
 """The ``magnav-ins`` command. Sub-commands live in :mod:`magnav_ins.commands`, one module per group.
 
 User mistakes (:class:`~magnav_ins.core.errors.MagnavError`) become a one-line message on stderr and exit
-status 2; nothing is half-written because every writer goes through :mod:`magnav_ins.core.atomic`.
+status 2; so does an operating-system error on a named file (a disk that filled up, a folder that vanished: the
+outputs are checked before the work starts, this is the last resort). Nothing is half-written because every writer
+goes through :mod:`magnav_ins.core.atomic`. The first Ctrl-C or SIGTERM stops the command (workers included, see
+:mod:`magnav_ins.core.signals`) with one line and exit status 130 or 143.
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ from collections.abc import Sequence
 
 from . import __version__
 from .core.errors import MagnavError
+from .core.signals import EXIT_SIGINT, EXIT_SIGTERM, Terminated, stop_signals_raise
 
 #: command-group modules under ``magnav_ins.commands``, in the order ``--help`` lists them
 COMMAND_MODULES: tuple[str, ...] = ("demo", "ins", "calibrate", "run", "maps", "bridge", "replay")
@@ -48,17 +52,26 @@ def _join_negative_lists(argv: Sequence[str]) -> list[str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point: parse ``argv``, run the handler, map user errors to exit status 2."""
+    """Entry point: parse ``argv``, run the handler, map user errors to exit status 2 and signals to 130 / 143."""
     parser = build_parser()
     args = parser.parse_args(_join_negative_lists(sys.argv[1:] if argv is None else list(argv)))
-    try:
-        return int(args.handler(args) or 0)
-    except MagnavError as exc:
-        print(f"magnav-ins: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("magnav-ins: interrupted", file=sys.stderr)
-        return 130
+    with stop_signals_raise():
+        try:
+            return int(args.handler(args) or 0)
+        except MagnavError as exc:
+            print(f"magnav-ins: error: {exc}", file=sys.stderr)
+            return 2
+        except Terminated:
+            print("magnav-ins: terminated (SIGTERM)", file=sys.stderr)
+            return EXIT_SIGTERM
+        except KeyboardInterrupt:
+            print("magnav-ins: interrupted", file=sys.stderr)
+            return EXIT_SIGINT
+        except OSError as exc:
+            if exc.filename is None:
+                raise
+            print(f"magnav-ins: error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -17,7 +17,9 @@ Loop (Wang et al. 2022, seed 001, Fig. 1 / sec. 3.3; Storms 2009, seed 004, sec.
   ``match_every`` readings. When a fix is accepted, the stored window positions are shifted by the correction
   applied at the fix time, so the window stays one rigid INS track.
 * Every fix (also "no fix") goes to ``fuser.correct`` (its :class:`Innovation` records acceptance and reason), with
-  the optional height aid ``height_aid(t) -> (h_m, sigma_m)`` (e.g. a barometer).
+  the optional height aid ``height_aid(t) -> (h_m, sigma_m)`` (e.g. a barometer). A batch matcher in retrodiction
+  mode (``mode = "retrodiction"`` with ``match_batch``, PMHT-MM) gives a fix per scan and their joint covariance;
+  the available ones go together to ``fuser.correct_batch`` (one correlated measurement; no height aid).
 
 Online: :meth:`Pipeline.push_imu` and :meth:`Pipeline.push_reading` (sample by sample; a reading stamped in the
 future is queued until the IMU reaches it; a late one uses the current estimate moved back along the velocity);
@@ -105,6 +107,16 @@ class Pipeline:
         self.height_aid = height_aid
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self._recursive = matcher is not None and hasattr(matcher, "initiate") and hasattr(matcher, "to_fix")
+        # retrodiction (Wang sec. 3.3): the matcher returns a fix per scan with their joint covariance, the fuser
+        # takes them as one correlated measurement (aiding.fusion.batch)
+        self._batch = (
+            matcher is not None and getattr(matcher, "mode", "") == "retrodiction" and hasattr(matcher, "match_batch")
+        )
+        if self._batch and not hasattr(fuser, "correct_batch"):
+            raise ConfigError(
+                f"Pipeline: matcher {getattr(matcher, 'name', '?')!r} in retrodiction mode needs a fuser that fuses a "
+                f"batch of correlated fixes (correct_batch: ukf, free_inertial); {getattr(fuser, 'name', '?')!r} has none"
+            )
         self._rstate = None
         self._stored: deque[_Stored] = deque(maxlen=self.window)
         self._pending: list[tuple[float, FloatArray | float]] = []  # readings ahead of the IMU
@@ -112,6 +124,7 @@ class Pipeline:
         self._t_imu = float(fuser.estimate().nav.t)
         self.fixes: list[Fix] = []
         self.innovations: list[Innovation] = []
+        self.external_innovations: list[Innovation] = []  # of push_fix (GNSS, surveyed points)
 
     # ---------------------------------------------------------------------------------------------- online
     def estimate(self) -> NavEstimate:
@@ -150,7 +163,31 @@ class Pipeline:
         self._on_reading(float(t), v)
         return self.fixes[-1] if len(self.fixes) > n else None
 
+    def push_fix(self, fix: Fix, *, height_m: float | None = None, height_sigma_m: float | None = None) -> Innovation:
+        """An external position fix (GNSS, a surveyed point) at ``fix.t`` (at or before the IMU time: the fuser
+        applies a late one at its own time). It goes to ``fuser.correct`` like a matcher's fix, the stored matcher
+        window is shifted by the correction (as for a matcher fix), and its innovation is kept in
+        ``external_innovations`` (``fixes`` and ``innovations`` hold the matcher's only). Returns the innovation."""
+        before = self.fuser.estimate()
+        if height_m is not None:
+            inn = self.fuser.correct(fix, height_m=float(height_m), height_sigma_m=height_sigma_m)
+        else:
+            inn = self.fuser.correct(fix)
+        self.external_innovations.append(inn)
+        if inn.accepted and abs(before.nav.t - fix.t) <= 1e-6:
+            self._shift_window(before)
+        return inn
+
     # ------------------------------------------------------------------------------------------ internals
+    def _shift_window(self, before: NavEstimate) -> None:
+        """Shift the stored window positions by the correction the fuser applied since ``before``."""
+        after = self.fuser.estimate().nav
+        dn, de = latlon_to_meters(after.lat - before.nav.lat, after.lon - before.nav.lon, before.nav.lat)
+        dh = after.h - before.nav.h
+        for x in self._stored:
+            dlat, dlon = meters_to_latlon(float(dn), float(de), x.lat, x.h)
+            x.lat, x.lon, x.h = x.lat + float(dlat), x.lon + float(dlon), x.h + dh
+
     def _propagate_to(self, t_c: float, w: FloatArray, f: FloatArray) -> None:
         """The first part of a straddling sample, up to the event time ``t_c``."""
         self.fuser.propagate(ImuBatch(np.array([t_c]), w[None, :], f[None, :]))
@@ -192,7 +229,26 @@ class Pipeline:
                 np.array([x.cov_ne for x in s]),
                 np.array([x.v_ne for x in s]),
             )
-            self._apply_fix(self.matcher.match(win, self.fmap), est)
+            if self._batch:
+                fixes, cov = self.matcher.match_batch(win, self.fmap)
+                self._apply_batch(fixes, cov, est)
+            else:
+                self._apply_fix(self.matcher.match(win, self.fmap), est)
+
+    def _apply_batch(self, fixes: list[Fix], cov: FloatArray, before: NavEstimate) -> None:
+        """A retrodiction batch: every fix is kept; the available ones go to ``fuser.correct_batch`` with their
+        joint covariance (one innovation); a batch without any goes to ``fuser.correct`` as its last "no fix"."""
+        self.fixes.extend(fixes)
+        ok = [f for f in fixes if f.available]
+        inn = self.fuser.correct_batch(ok, cov) if ok else self.fuser.correct(fixes[-1])
+        self.innovations.append(inn)
+        if inn.accepted:
+            after = self.fuser.estimate().nav
+            dn, de = latlon_to_meters(after.lat - before.nav.lat, after.lon - before.nav.lon, before.nav.lat)
+            dh = after.h - before.nav.h
+            for x in self._stored:  # keep the window one rigid INS track
+                dlat, dlon = meters_to_latlon(float(dn), float(de), x.lat, x.h)
+                x.lat, x.lon, x.h = x.lat + float(dlat), x.lon + float(dlon), x.h + dh
 
     def _apply_fix(self, fix: Fix, before: NavEstimate) -> None:
         self.fixes.append(fix)

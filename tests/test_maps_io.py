@@ -162,10 +162,9 @@ def test_survey_xz_and_orthometric_heights(tmp_path):
     text = HEADER.replace("height_ellipsoidal_m", "height_orthometric_m") + GOOD
     p = tmp_path / "s.csv.xz"
     p.write_bytes(lzma.compress(text.encode()))
-    with pytest.raises(InputError, match="geoid"):
-        read_survey(p)
-    s = read_survey(p, geoid_undulation_m=52.5)
+    s = read_survey(p, geoid_undulation_m=52.5)  # a given undulation overrides the shipped geoid
     np.testing.assert_allclose(s.h, [452.5, 452.5, 453.5])
+    assert "52.50 m (given)" in s.heights
 
 
 @pytest.mark.parametrize(

@@ -328,25 +328,31 @@ def test_pmht_ambiguity_term_covers_a_wrong_mode_on_a_periodic_map():
     """A map periodic along north (period 300 m, constant along east): offsets of whole periods fit the readings
     equally well, so the batch likelihood has a mode every 300 m inside the +-600 m gate. With the INS 220 m north of
     the truth the EM climbs the mode one period away; the local covariance (EM, Cramer-Rao bound) claims a few metres,
-    the ambiguity term must cover the 300 m (north NEES below the 99 % chi-square(1) bound 6.6)."""
+    the ambiguity term must cover the 300 m (north NEES below the 99 % chi-square(1) bound 6.6); that fix is then
+    wider than the 200 m prior everywhere and is refused as adding no information."""
     rng = np.random.default_rng(33)
     base = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
     ny, nx = np.asarray(base.values).shape[:2]
     fmap = base.with_values(20.0 * np.sin(2 * np.pi * 10.0 * np.arange(ny) / 300.0)[:, None] * np.ones((1, nx)))
+    fmap = fmap.with_error_layer(0.0, correlation_m=10.0)  # readings drawn from this map: no map error
     T, dt, sig, v = 30, 10.0, 0.5, np.array([12.0, 0.0])
     truth = np.array([300.0, 2000.0]) + v * dt * np.arange(T)[:, None]
     z = fmap.value(*latlon(fmap, truth[:, 0], truth[:, 1])) + rng.normal(0, sig, T)
     w = make_window(fmap, dt * np.arange(T), truth, z, sig, KIND_G, np.array([220.0, 50.0]), np.eye(2) * 200.0**2, v)
-    nees_n = {}
-    for amb in (True, False):
-        fix = PMHTMatcher(ambiguity_floor=amb).match(w, fmap)
-        assert fix.available, fix.reason
-        d = local(fmap, fix.lat, fix.lon) - truth[-1]
-        assert 250.0 < d[0] < 350.0  # the wrong mode, one period north
-        nees_n[amb] = d[0] ** 2 / fix.cov_ne[0, 0]
-        # east is unobservable (the map is constant along east): a partial fix, east variance capped at (10 h)^2
-        assert np.isclose(fix.cov_ne[1, 1], (10 * 3 * 200.0) ** 2, rtol=1e-3)
-    assert nees_n[True] < 6.6 and nees_n[False] > 100.0, nees_n
+    fix = PMHTMatcher(ambiguity_floor=False).match(w, fmap)
+    assert fix.available, fix.reason
+    d = local(fmap, fix.lat, fix.lon) - truth[-1]
+    assert 250.0 < d[0] < 350.0  # the wrong mode, one period north
+    assert d[0] ** 2 / fix.cov_ne[0, 0] > 100.0  # the local covariance claims a few metres
+    # east is unobservable (the map is constant along east): a partial fix, east variance capped at (10 h)^2
+    assert np.isclose(fix.cov_ne[1, 1], (10 * 3 * 200.0) ** 2, rtol=1e-3)
+    m = PMHTMatcher(ambiguity_floor=True)
+    res = m.run(w, fmap)
+    cov, near = m._ambiguity_cov(res, len(res.t) - 1)
+    assert near < m.ambiguity_mass and (d[0] ** 2 / cov[0, 0]) < 6.6  # the ambiguity term covers the wrong mode
+    # ... and so the fix is no tighter than the 200 m prior in any direction: refused (issue 16's rule)
+    fix = m.match(w, fmap)
+    assert not fix.available and "adds no information" in fix.reason, fix.reason
 
 
 def test_pmht_ambiguity_term_unused_where_the_likelihood_is_unambiguous():
@@ -354,6 +360,7 @@ def test_pmht_ambiguity_term_unused_where_the_likelihood_is_unambiguous():
     within 1.5 offset cells): the fix covariance is the local one, bit for bit."""
     rng = np.random.default_rng(31)
     fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    fmap = fmap.with_error_layer(0.0, correlation_m=10.0)  # readings drawn from this map: no map error
     w, _ = _pmht_window(fmap, rng)
     m = PMHTMatcher()
     res = m.run(w, fmap)

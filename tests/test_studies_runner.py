@@ -29,7 +29,7 @@ DESIGN_KEYS = {
     "availability",
     "nees_mean",
 }
-EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction"}
+EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons"}
 
 
 @dataclass(frozen=True)

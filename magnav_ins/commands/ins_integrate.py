@@ -1,7 +1,9 @@
 """``magnav-ins ins integrate IMU.csv --init INIT.json --out TRAJ.csv``: mechanise a recorded rate-type IMU.
 
 IMU.csv: header ``t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z`` (any order, no other columns): ``t`` s, gyro
-rad/s (mean rate over the interval ending at ``t``), accel m/s^2 specific force, body FRD. INIT.json: ``t`` (s, must
+rad/s (mean rate over the interval ending at ``t``), accel m/s^2 specific force, body FRD; ``--sample-type
+instantaneous`` for rates sampled at ``t`` (MEMS IMUs, pyins ``sensor_type="rate"``), ``increment`` for angle (rad)
+and velocity (m/s) increments over the interval (:data:`magnav_ins.ins.strapdown.SAMPLE_TYPES`). INIT.json: ``t`` (s, must
 equal the first sample's time), ``lat_deg``, ``lon_deg``, ``h_m`` (ellipsoidal), ``v_n`` ([north, east, down] m/s),
 ``roll_deg``, ``pitch_deg``, ``yaw_deg``. TRAJ.csv: ``t,lat_deg,lon_deg,h_m,vn,ve,vd,roll_deg,pitch_deg,yaw_deg``,
 one row per IMU sample (row 1 = INIT; the first IMU sample only primes the coning/sculling memory, see
@@ -28,7 +30,7 @@ from ..core.atomic import atomic_path
 from ..core.errors import InputError, where
 from ..core.frames import euler_from_q_nb, q_nb_from_euler
 from ..core.types import ImuBatch, NavState, NavTrajectory
-from ..ins.strapdown import StrapdownStepper
+from ..ins.strapdown import SAMPLE_TYPES, StrapdownStepper, check_sample_type, interval_means
 
 IMU_COLUMNS = ("t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
 INIT_KEYS = ("t", "lat_deg", "lon_deg", "h_m", "v_n", "roll_deg", "pitch_deg", "yaw_deg")
@@ -64,6 +66,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="M",
         help="hold the ellipsoidal height at M metres (the free vertical channel is unstable over hours)",
+    )
+    p.add_argument(
+        "--sample-type",
+        default="mean",
+        choices=SAMPLE_TYPES,
+        help="what a sample is: mean rate over the interval ending at t (default), the instantaneous rate at t "
+        "(MEMS IMUs), or the increment over the interval (rad, m/s)",
     )
     p.add_argument("--chunk-rows", type=int, default=50_000, help=argparse.SUPPRESS)
     p.set_defaults(handler=run)
@@ -168,14 +177,17 @@ def integrate_file(
     max_gap: float | None = None,
     altitude_hold: float | None = None,
     chunk_rows: int = 50_000,
+    sample_type: str = "mean",
 ) -> int:
     """Mechanise ``imu_path`` from ``init_path`` into ``out_path`` (see the module docstring). Returns the number of
     trajectory rows written. Raises :class:`InputError` naming the file, row and column on bad input."""
     imu_path, init_path, out_path = Path(imu_path), Path(init_path), Path(out_path)
     if max_gap is not None and not (math.isfinite(max_gap) and max_gap > 0):
         raise InputError(f"--max-gap: expected a positive number of seconds, got {max_gap}")
+    check_sample_type(sample_type)
     init = read_init(init_path)
     _check_header(imu_path)
+    previous: tuple[float, np.ndarray, np.ndarray] | None = None  # the last raw sample of the previous chunk
     stepper: StrapdownStepper | None = None
     gap_limit = max_gap
     gap_rule = "--max-gap"
@@ -208,6 +220,9 @@ def integrate_file(
                         f"{where(imu_path, row=row0 + k, key='t')}gap of {dt[int(bad[0])]:.6g} s before this sample "
                         f"exceeds {gap_limit:.6g} s ({gap_rule})"
                     )
+            raw_last = (float(t[-1]), gyro[-1].copy(), accel[-1].copy())
+            gyro, accel = interval_means(t, gyro, accel, sample_type, previous=previous)
+            previous = raw_last
             if stepper is None:
                 if abs(t[0] - init.t) > INIT_TIME_TOLERANCE_S:
                     raise InputError(
@@ -243,6 +258,7 @@ def run(args: argparse.Namespace) -> int:
         max_gap=args.max_gap,
         altitude_hold=args.altitude_hold,
         chunk_rows=args.chunk_rows,
+        sample_type=args.sample_type,
     )
     print(f"wrote {rows} states to {args.out}")
     return 0

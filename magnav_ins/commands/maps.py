@@ -1,11 +1,14 @@
 """``magnav-ins map ...``: inspect a map, grid a survey, sample a map at points.
 
     magnav-ins map info MAP [--json]
-    magnav-ins map grid SURVEY --spacing M [--exclude-lines ID,ID,...] [--exclude-tie-lines] [--out MAP.nc]
+    magnav-ins map grid SURVEY --spacing M [--exclude-lines ID,ID,...] [--exclude-tie-lines] [--line-type T]
+                   [--exclude-line-type T] [--check-lines T] [--column OURS=THEIRS ...] [--geoid-m N] [--out MAP.nc]
     magnav-ins map sample MAP --points CSV --out CSV [--method bilinear|bicubic]
 
 ``MAP`` is a NetCDF grid, ``builtin:NAME`` or a survey CSV(.xz) (then ``--spacing`` grids it on load). Files that
 lack kind/unit/datum/altitude metadata are refused; ``--kind``, ``--altitude-m``, ``--datum`` supply them explicitly.
+Survey CSVs with other column names are read through ``--column OURS=THEIRS`` (repeatable); orthometric heights are
+made ellipsoidal with the shipped EIGEN-6C4 geoid unless ``--geoid-m`` gives the undulation.
 Outputs are written atomically; user mistakes give a one-line error and exit status 2.
 """
 
@@ -42,18 +45,50 @@ def _map_options(p: argparse.ArgumentParser, *, survey: bool) -> None:
     p.add_argument("--altitude-m", type=float, default=None, help="ellipsoidal height (m) if the file does not say")
     p.add_argument("--datum", default=None, help="geodetic datum if the file does not say (only WGS84 is supported)")
     if survey:
-        p.add_argument(
-            "--geoid-m",
-            type=float,
-            default=None,
-            help="geoid undulation N (m) turning a survey's height_orthometric_m into ellipsoidal height H + N",
-        )
+        _survey_options(p)
     p.add_argument("--spacing", type=float, default=None, metavar="M", help="grid spacing (m) for a survey CSV")
 
 
-def _load(args: argparse.Namespace, spec: str) -> Any:
-    from ..maps.io import load_map
+def _survey_options(p: argparse.ArgumentParser) -> None:
+    """Options of every command that reads a survey CSV: column mapping, geoid, line selection by type."""
+    p.add_argument(
+        "--geoid-m",
+        type=float,
+        default=None,
+        help="geoid undulation N (m) turning a survey's height_orthometric_m into ellipsoidal height H + N "
+        "(default: the shipped EIGEN-6C4 geoid, 10')",
+    )
+    p.add_argument(
+        "--column",
+        action="append",
+        default=[],
+        metavar="OURS=THEIRS",
+        help="survey column mapping, repeatable: e.g. --column height_ellipsoidal_m=height_ell_m --column "
+        "line=line_number",
+    )
+    p.add_argument("--line-type", default=None, metavar="TYPE", help="use only the lines of this line_type (e.g. LINE)")
+    p.add_argument(
+        "--exclude-line-type", default=None, metavar="TYPE", help="leave out the lines of this line_type (e.g. TIE)"
+    )
 
+
+def _log_to_stderr(args: argparse.Namespace) -> None:
+    """Show the map readers' INFO lines (e.g. which geoid made a survey's heights ellipsoidal) unless --quiet."""
+    import logging
+
+    lg = logging.getLogger("magnav_ins.maps")
+    if getattr(args, "quiet", False) or lg.handlers:
+        return
+    h = logging.StreamHandler()
+    h.setFormatter(logging.Formatter("magnav-ins: %(message)s"))
+    lg.addHandler(h)
+    lg.setLevel(logging.INFO)
+
+
+def _load(args: argparse.Namespace, spec: str) -> Any:
+    from ..maps.io import load_map, parse_column_mapping
+
+    _log_to_stderr(args)
     return load_map(
         spec,
         grid_spacing_m=args.spacing,
@@ -61,6 +96,9 @@ def _load(args: argparse.Namespace, spec: str) -> Any:
         altitude_m=args.altitude_m,
         datum=args.datum,
         geoid_undulation_m=getattr(args, "geoid_m", None),
+        columns=parse_column_mapping(getattr(args, "column", [])) or None,
+        line_type=getattr(args, "line_type", None),
+        exclude_line_type=getattr(args, "exclude_line_type", None),
     )
 
 
@@ -151,7 +189,14 @@ def _add_grid(map_sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--method", choices=["auto", "bidirectional", "linear", "cubic"], default="auto")
     p.add_argument("--kind", choices=[k.value for k in FieldKind], default=None, help="kind of a 'value' column")
-    p.add_argument("--geoid-m", type=float, default=None, help="geoid undulation N (m) for height_orthometric_m")
+    _survey_options(p)
+    p.add_argument(
+        "--check-lines",
+        default=None,
+        metavar="TYPE",
+        help="after gridding, predict the readings of the lines of this line_type (left out of the grid, e.g. TIE) "
+        "and print the misfit",
+    )
     p.add_argument("--altitude-m", type=float, default=None, help="constant ellipsoidal height if no height column")
     p.add_argument("--float32", action="store_true", help="store values as float32 (half the size)")
     p.add_argument("--out", default=None, metavar="MAP.nc", help="output NetCDF (default: SURVEY name + .nc here)")
@@ -172,25 +217,51 @@ def _parse_ids(text: str) -> list[int]:
 def run_grid(args: argparse.Namespace) -> int:
     import time
 
-    from ..maps.build import cross_lines, grid_survey
-    from ..maps.io import read_survey, write_map
+    from ..maps.build import cross_lines, grid_survey, tie_line_misfit
+    from ..maps.io import parse_column_mapping, read_survey, select_lines, write_map
 
+    _log_to_stderr(args)
     exclude = _parse_ids(args.exclude_lines)
     src = Path(args.survey)
     out = Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc")
     t0 = time.perf_counter()
-    survey = read_survey(src, kind=args.kind, geoid_undulation_m=args.geoid_m, altitude_m=args.altitude_m)
+    survey = read_survey(
+        src,
+        kind=args.kind,
+        geoid_undulation_m=args.geoid_m,
+        altitude_m=args.altitude_m,
+        columns=parse_column_mapping(args.column) or None,
+    )
+    check_ids: list[int] = []
+    if args.check_lines is not None:
+        check_ids = survey.ids_of_type(args.check_lines)
+        if args.line_type == args.check_lines:
+            raise InputError(f"--check-lines {args.check_lines}: the same lines cannot be gridded and checked")
+    used = survey
+    if args.line_type is not None or args.exclude_line_type is not None:
+        used = select_lines(survey, line_type=args.line_type, exclude_line_type=args.exclude_line_type)
     ties: list[int] = []
     if args.exclude_tie_lines:
-        ties = cross_lines(survey)
+        ties = cross_lines(used)
         exclude = sorted(set(exclude) | set(ties))
-    fmap = grid_survey(survey, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem)
+    if check_ids:
+        exclude = sorted(set(exclude) | (set(check_ids) & set(used.line_ids().tolist())))
+    fmap = grid_survey(used, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem)
     fmap.metadata["source"] = src.name
+    fmap.metadata["heights"] = survey.heights
+    for key, val in (("line_type", args.line_type), ("excluded_line_type", args.exclude_line_type)):
+        if val is not None:
+            fmap.metadata[key] = val
+    misfit = None
+    if check_ids:
+        per = tie_line_misfit(fmap, survey, check_ids)
+        misfit = _pooled_misfit(per)
+        fmap.metadata["check_lines"] = {"line_type": args.check_lines, **misfit}
     write_map(fmap, out, dtype="float32" if args.float32 else "float64")
     if not args.quiet:
         dn, de = fmap.spacing_m
         print(
-            f"gridded {len(survey)} readings ({fmap.metadata['gridder']}) -> {out}: {fmap.shape[0]} x {fmap.shape[1]} "
+            f"gridded {fmap.metadata['readings']} readings ({fmap.metadata['gridder']}) -> {out}: {fmap.shape[0]} x {fmap.shape[1]} "
             f"nodes at {dn:.0f} m, {100 * np.mean(np.isfinite(fmap.values)):.0f} % covered, "
             f"{time.perf_counter() - t0:.1f} s"
         )
@@ -199,7 +270,31 @@ def run_grid(args: argparse.Namespace) -> int:
         ign = fmap.metadata.get("ignored_lines") or []
         if ign:
             print(f"cross lines not used by the line gridder: {','.join(map(str, ign))}")
+        if misfit is not None:
+            print(
+                f"{args.check_lines} lines ({len(check_ids)}) predicted by the map: {misfit['n']} readings, misfit "
+                f"(map - observed) RMS {misfit['rms']:.2f}, mean {misfit['mean']:.2f}, std {misfit['std']:.2f} "
+                f"{fmap.unit}; {misfit['n_off']} off the map"
+            )
     return 0
+
+
+def _pooled_misfit(per: dict[int, dict]) -> dict[str, Any]:
+    """Pool :func:`~magnav_ins.maps.build.tie_line_misfit`'s per-line figures over the lines (reading-weighted)."""
+    n = sum(v["n"] for v in per.values())
+    if n == 0:
+        return {"n": 0, "n_off": sum(v["n_off"] for v in per.values()), "rms": float("nan"), "mean": float("nan"),
+                "std": float("nan"), "lines": len(per)}  # fmt: skip
+    ms = sum(v["rms"] ** 2 * v["n"] for v in per.values() if v["n"]) / n
+    mean = sum(v["mean"] * v["n"] for v in per.values() if v["n"]) / n
+    return {
+        "n": int(n),
+        "n_off": int(sum(v["n_off"] for v in per.values())),
+        "rms": float(np.sqrt(ms)),
+        "mean": float(mean),
+        "std": float(np.sqrt(max(ms - mean**2, 0.0))),
+        "lines": len(per),
+    }
 
 
 # ------------------------------------------------------------------------------------------------ sample

@@ -225,6 +225,34 @@ GRADES: dict[str, ImuGrade] = {
         rate_hz=100.0,
         source=_WANG + " (QAPCG: quantum accelerometer, precision gyroscope); rate assumed 100 Hz",
     ),
+    # Autopilot MEMS IMU (Pixhawk-class flight controllers: ICM-42688-P, ICM-20602, BMI088), as the companion
+    # computer receives it in HIGHRES_IMU: TDK InvenSense ICM-42688-P data sheet DS-000347 rev. 1.6, Table 1 (gyro
+    # rate noise spectral density 0.0028 deg/s/sqrt(Hz), sensitivity tolerance +-0.5 %, ZRO variation over
+    # temperature +-0.005 deg/s/degC) and Table 2 (accel noise 70 ug/sqrt(Hz), zero-g change over temperature
+    # +-0.15 mg/degC, sensitivity +-0.5 %), cross-axis +-2 % taken as 1-sigma. Assumptions, stated because a data
+    # sheet cannot give them: the autopilot's own start-up calibrations (ArduPilot INS_GYR_CAL, accelerometer
+    # calibration) leave turn-on residuals of 0.05 deg/s and 10 mg; the bias then wanders with temperature over
+    # minutes (Gauss-Markov, tau 300 s) by 0.1 deg/s and 5 mg (20 degC change in flight, which also covers the
+    # Earth's rate 0.004 deg/s that simulators leave out); motor vibration raises the white noise to 4x the data
+    # sheet densities in flight.
+    "autopilot": ImuGrade(
+        name="autopilot",
+        gyro_bias_sigma=_v(0.1 * u.DEG_TO_RAD),
+        gyro_bias_tau=300.0,
+        gyro_turn_on_sigma=_v(0.05 * u.DEG_TO_RAD),
+        arw=_v(4.0 * 0.0028 * u.DEG_TO_RAD),
+        gyro_scale_sigma=0.005,
+        gyro_misalignment_sigma=0.02,
+        accel_bias_sigma=_v(5e3 * u.MICRO_G_TO_MPS2),
+        accel_bias_tau=300.0,
+        accel_turn_on_sigma=_v(10e3 * u.MICRO_G_TO_MPS2),
+        vrw=_v(4.0 * 70.0 * u.MICRO_G_TO_MPS2),
+        accel_scale_sigma=0.005,
+        accel_misalignment_sigma=0.02,
+        rate_hz=100.0,
+        source="TDK InvenSense ICM-42688-P data sheet DS-000347 rev. 1.6 Tables 1-2; calibration residuals, "
+        "temperature wander and vibration assumed (see imu_models.py)",
+    ),
 }
 
 

@@ -212,9 +212,19 @@ def waypoints(
             # last point: stop at the closest approach (the point comes abeam)
             return math.cos(_bearing(y[0], y[1], lat_w, lon_w) - y[3])
 
+        def passed(_t: float, y: FloatArray) -> float:
+            # a fly-by point missed by less than a turn radius (a small heading change, so a lead distance of a few
+            # metres, on a jittery survey line) counts as passed when it comes abeam; never fires before the lead
+            # circle would have been entered, so it changes nothing for a point that is hit
+            if _dist(y[0], y[1], lat_w, lon_w) > r_turn:
+                return 1.0
+            return math.cos(_bearing(y[0], y[1], lat_w, lon_w) - y[3])
+
         arrive.terminal = True  # type: ignore[attr-defined]
         arrive.direction = -1  # type: ignore[attr-defined]
-        return rhs, arrive
+        passed.terminal = True  # type: ignore[attr-defined]
+        passed.direction = -1  # type: ignore[attr-defined]
+        return rhs, (arrive, passed) if i < len(pts) - 1 else arrive
 
     psi0 = _bearing(pts[0, 0], pts[0, 1], pts[1, 0], pts[1, 1])
     y = np.array([pts[0, 0], pts[0, 1], pts[0, 2], psi0, 0.0, 0.0])

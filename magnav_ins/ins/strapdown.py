@@ -25,7 +25,9 @@ the increments of the interval before:
 
 Rate-type IMUs (:class:`~magnav_ins.core.types.ImuBatch`, sample k = *mean* rate over ``(t[k-1], t[k]]``) are
 turned into increments ``dtheta = gyro dt``, ``dv = accel dt``; increment-type IMUs
-(:class:`~magnav_ins.core.types.ImuIncrements`) are used as they are. Both then run the same step.
+(:class:`~magnav_ins.core.types.ImuIncrements`) are used as they are. Both then run the same step. Samples that
+are instantaneous rates (MEMS autopilot IMUs, pyins ``sensor_type="rate"``) are turned into interval means first
+(:data:`SAMPLE_TYPES`, :func:`interval_means`, :class:`SampleMeans`).
 
 Forms:
 
@@ -54,11 +56,14 @@ from ..core.frames import WGS84_A, WGS84_E2, WGS84_F, WGS84_GAMMA_E, WGS84_K, WG
 from ..core.types import FloatArray, ImuBatch, ImuIncrements, NavState, NavTrajectory
 
 __all__ = [
+    "SAMPLE_TYPES",
     "NavTrajectoryBatch",
+    "SampleMeans",
     "StrapdownStepper",
     "gravity_ned",
     "integrate",
     "integrate_batch",
+    "interval_means",
 ]
 
 # Layout of the flat state vector used by the kernels: lat, lon, h, v_n (3), q_nb (4, scalar-last).
@@ -653,6 +658,90 @@ def integrate_batch(
         out[:, :, _V : _V + 3].copy(),
         out[:, :, _Q:].copy(),
     )
+
+
+#: what an IMU sample holds about its interval ``(t[k-1], t[k]]`` (rates in rad/s and m/s^2, increments in rad and
+#: m/s): ``mean`` the mean rate over the interval (the mechanisation's own input; a rate-integrating IMU's output);
+#: ``instantaneous`` the rate at ``t[k]`` (a filtered MEMS sample, ArduPilot's and PX4's HIGHRES_IMU, pyins
+#: ``sensor_type="rate"``); ``increment`` the integral over the interval (pyins ``sensor_type="increment"``).
+SAMPLE_TYPES = ("mean", "instantaneous", "increment")
+
+
+def check_sample_type(sample_type: str) -> str:
+    """``sample_type`` if it is one of :data:`SAMPLE_TYPES`, else :class:`InputError` naming the choices."""
+    if sample_type not in SAMPLE_TYPES:
+        raise InputError(f"sample type {sample_type!r}: expected one of {', '.join(SAMPLE_TYPES)}")
+    return sample_type
+
+
+def interval_means(
+    t: FloatArray,
+    a: FloatArray,
+    b: FloatArray,
+    sample_type: str,
+    *,
+    previous: tuple[float, FloatArray, FloatArray] | None = None,
+) -> tuple[FloatArray, FloatArray]:
+    """Mean rates over each interval ``(t[k-1], t[k]]`` from samples of ``sample_type`` (:data:`SAMPLE_TYPES`).
+
+    ``t`` (N,) s; ``a``, ``b`` (N, 3): gyro and accelerometer samples (rad/s and m/s^2, or rad and m/s for
+    increments), body FRD. ``instantaneous``: the rate is taken as linear between samples (the model of pyins's
+    ``compute_increments_from_imu`` for ``"rate"`` and of Savage 1998's two-sample algorithms), so the interval
+    mean is the trapezoid ``(x[k-1] + x[k]) / 2``; treating the sample itself as the mean lags the attitude and
+    velocity by half a sample. ``increment``: ``x[k] / (t[k] - t[k-1])``. ``previous`` = ``(t, a, b)`` of the sample
+    before ``t[0]`` (chunked or streamed input); without it sample 0 is its own mean (its interval is unknown; the
+    mechanisation only uses it to seed the coning/sculling memory) and an increment sample 0 is divided by
+    ``t[1] - t[0]``. Returns the (N, 3) means.
+    """
+    check_sample_type(sample_type)
+    t = np.asarray(t, dtype=float)
+    a = np.asarray(a, dtype=float).reshape(-1, 3)
+    b = np.asarray(b, dtype=float).reshape(-1, 3)
+    if sample_type == "mean" or len(t) == 0:
+        return a, b
+    if sample_type == "instantaneous":
+        a0 = a[:1] if previous is None else np.asarray(previous[1], float).reshape(1, 3)
+        b0 = b[:1] if previous is None else np.asarray(previous[2], float).reshape(1, 3)
+        ap = np.concatenate([a0, a[:-1]])
+        bp = np.concatenate([b0, b[:-1]])
+        return 0.5 * (ap + a), 0.5 * (bp + b)
+    if previous is not None:
+        dt = np.diff(np.concatenate([[float(previous[0])], t]))
+    elif len(t) > 1:
+        dt = np.diff(t)
+        dt = np.concatenate([dt[:1], dt])
+    else:
+        raise InputError("interval_means: one increment sample without the previous time has no interval")
+    if np.any(~(dt > 0)):
+        raise InputError("interval_means: increment times must increase strictly")
+    return a / dt[:, None], b / dt[:, None]
+
+
+class SampleMeans:
+    """Streaming form of :func:`interval_means`: ``means(t, a, b)`` returns the mean rates over ``(t_prev, t]`` for
+    one sample of ``sample_type``; :meth:`reset` forgets the previous sample (after a gap or a restart)."""
+
+    __slots__ = ("sample_type", "_prev")
+
+    def __init__(self, sample_type: str = "mean") -> None:
+        self.sample_type = check_sample_type(sample_type)
+        self._prev: tuple[float, FloatArray, FloatArray] | None = None
+
+    def reset(self) -> None:
+        self._prev = None
+
+    def means(self, t: float, a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
+        a = np.asarray(a, dtype=float).reshape(3)
+        b = np.asarray(b, dtype=float).reshape(3)
+        prev, self._prev = self._prev, (float(t), a, b)
+        if self.sample_type == "mean":
+            return a, b
+        if self.sample_type == "instantaneous":
+            return (a, b) if prev is None else (0.5 * (prev[1] + a), 0.5 * (prev[2] + b))
+        if prev is None or not t > prev[0]:
+            raise InputError("SampleMeans: an increment needs the previous sample's time (strictly earlier)")
+        dt = float(t) - prev[0]
+        return a / dt, b / dt
 
 
 def set_threads(n: int) -> None:  # pragma: no cover - thin convenience

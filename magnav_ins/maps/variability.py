@@ -318,3 +318,51 @@ def crlb_raster(fmap: GridMap, sigma: float, window_m: float) -> dict[str, Float
     for arr in out.values():
         arr[~ok] = np.nan
     return out
+
+
+# ---------------------------------------------------------------------------------------------- posterior CRLB
+def posterior_crlb(
+    P0: ArrayLike,
+    transitions: ArrayLike,
+    process_noise: ArrayLike,
+    information: ArrayLike,
+    hold: tuple[int, ...] = (),
+) -> FloatArray:
+    """Posterior Cramér-Rao bound of a linear-Gaussian state sequence observed through nonlinear measurements
+    (Tichavsky, Muravchik & Nehorai 1998, IEEE TSP 46(5), eq. 21 with linear dynamics; Bergman 1999 ch. 4 for
+    terrain navigation): ``J_{k+1} = (Q_k + Phi_k J_k^-1 Phi_k^T)^-1 + I_{k+1}``, run here in covariance form
+    ``P- = Phi P Phi^T + Q``, ``P = (P-^-1 + I)^-1`` (with the information form only where ``I`` is non-zero).
+
+    ``P0`` (n, n) prior covariance; ``transitions`` (K, n, n) ``Phi_k`` from step k to k+1; ``process_noise``
+    (K, n, n) ``Q_k``; ``information`` (K, n, n) the measurement Fisher information ``I_{k+1}`` added after step k
+    (zeros where there is no reading; for a map reading ``H^T H / sigma^2`` with ``H`` the map gradient on the
+    position states, :func:`fisher_information_ne`). ``hold``: states clamped by the mechanisation (e.g. the
+    altitude hold's down position and velocity), whose rows and columns keep their value and lose their
+    correlations after every step, as the fusers' covariance does. Returns the bound ``P_k`` (K + 1, n, n),
+    row 0 = ``P0``."""
+    P = np.array(P0, dtype=float)
+    Phi = np.asarray(transitions, dtype=float)
+    Q = np.asarray(process_noise, dtype=float)
+    J = np.asarray(information, dtype=float)
+    if Phi.ndim != 3 or Phi.shape[1:] != P.shape or Q.shape != Phi.shape or J.shape != Phi.shape:
+        raise InputError(
+            f"posterior_crlb: P0 {P.shape}, transitions {Phi.shape}, process_noise {Q.shape} and information "
+            f"{J.shape} must be (n, n) and (K, n, n)"
+        )
+    hold = tuple(hold)
+    out = np.empty((Phi.shape[0] + 1,) + P.shape)
+    out[0] = P
+    for k in range(Phi.shape[0]):
+        held = np.diag(P)[list(hold)].copy() if hold else None
+        P = Phi[k] @ P @ Phi[k].T + Q[k]
+        if held is not None:
+            P[hold, :] = 0.0
+            P[:, hold] = 0.0
+            P[hold, hold] = held
+        if np.any(J[k]):
+            free = [i for i in range(P.shape[0]) if i not in hold]
+            Pf = P[np.ix_(free, free)]
+            Pf = np.linalg.inv(np.linalg.inv(Pf) + J[k][np.ix_(free, free)])
+            P[np.ix_(free, free)] = 0.5 * (Pf + Pf.T)
+        out[k + 1] = P
+    return out

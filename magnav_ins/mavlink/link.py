@@ -50,9 +50,34 @@ MSG_ID = {
     "ATTITUDE": mavlink2.MAVLINK_MSG_ID_ATTITUDE,
     "GLOBAL_POSITION_INT": mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
     "SCALED_PRESSURE": mavlink2.MAVLINK_MSG_ID_SCALED_PRESSURE,
+    "GPS_RAW_INT": mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT,
+    "GPS2_RAW": mavlink2.MAVLINK_MSG_ID_GPS2_RAW,
+    "EXTENDED_SYS_STATE": mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
+    "GPS_GLOBAL_ORIGIN": mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
+    "SIM_STATE": mavlink2.MAVLINK_MSG_ID_SIM_STATE,
+    "EKF_STATUS_REPORT": mavlink2.MAVLINK_MSG_ID_EKF_STATUS_REPORT,
+    "HOME_POSITION": mavlink2.MAVLINK_MSG_ID_HOME_POSITION,
 }
 
 SET_MESSAGE_INTERVAL = mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL  # 511
+REQUEST_MESSAGE = mavlink2.MAV_CMD_REQUEST_MESSAGE  # 512
+SET_EKF_SOURCE_SET = mavlink2.MAV_CMD_SET_EKF_SOURCE_SET  # 42007, ArduPilot 4.1+
+#: COMMAND_LONG to the bridge's own component: param1 = 1 marks the autopilot's GNSS untrusted (operator denial),
+#: 0 trusts it again (MAV_CMD_USER_1, a command id MAVLink leaves to the user)
+GNSS_DENY_COMMAND = mavlink2.MAV_CMD_USER_1
+MAV_RESULT_ACCEPTED = mavlink2.MAV_RESULT_ACCEPTED
+LANDED_STATE = {
+    mavlink2.MAV_LANDED_STATE_UNDEFINED: "undefined",
+    mavlink2.MAV_LANDED_STATE_ON_GROUND: "on_ground",
+    mavlink2.MAV_LANDED_STATE_IN_AIR: "in_air",
+    mavlink2.MAV_LANDED_STATE_TAKEOFF: "takeoff",
+    mavlink2.MAV_LANDED_STATE_LANDING: "landing",
+}
+#: GPS_INPUT ignore_flags bits
+GPS_INPUT_IGNORE_VEL = mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+GPS_INPUT_IGNORE_VEL_VERT = mavlink2.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+GPS_INPUT_IGNORE_SPEED_ACCURACY = mavlink2.GPS_INPUT_IGNORE_FLAG_SPEED_ACCURACY
+MAV_MODE_FLAG_SAFETY_ARMED = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
 
 SEVERITY = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 4, "notice": 5, "info": 6, "debug": 7}
 GLOBAL_POSITION_SOURCE = {
@@ -69,10 +94,19 @@ MILLIRAD_TO_RAD = 1e-3
 # --- what the link hands to its users (SI, our frames) ---------------------------------------------------
 @dataclass(frozen=True)
 class Heartbeat:
+    """HEARTBEAT: ``armed`` from ``base_mode``; ``custom_mode`` the autopilot's flight mode number."""
+
     sysid: int
     compid: int
     mav_type: int
     autopilot: int
+    base_mode: int = 0
+    custom_mode: int = 0
+    system_status: int = 0
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
 
 
 @dataclass(frozen=True)
@@ -108,6 +142,102 @@ class PositionMessage:
     lon: float
     h_msl: float
     v_n: np.ndarray
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class GnssMessage:
+    """GPS_RAW_INT (``instance`` 0) or GPS2_RAW (1): the autopilot's raw GNSS receiver, not its EKF.
+
+    ``t`` s (``time_usec``: ArduPilot and PX4 stamp it on the boot clock), ``fix_type`` (0-1 no fix, 2 2D, 3 3D,
+    4 DGPS, 5-6 RTK), ``lat``/``lon`` rad, ``h_msl`` m, ``h_ellipsoid`` m (nan when not sent), ``sigma_h`` /
+    ``sigma_v`` m (``h_acc``/``v_acc``; nan when not sent), ``hdop`` (nan if unknown), ``satellites`` (-1 if
+    unknown), ``speed`` m/s and ``course`` rad (nan if unknown)."""
+
+    t: float
+    instance: int
+    fix_type: int
+    lat: float
+    lon: float
+    h_msl: float
+    h_ellipsoid: float
+    sigma_h: float
+    sigma_v: float
+    hdop: float
+    satellites: int
+    speed: float
+    course: float
+    sysid: int
+    compid: int
+
+    @property
+    def has_position(self) -> bool:
+        """A 3D fix with a position that is not the 0 N 0 E placeholder."""
+        return self.fix_type >= 3 and not (self.lat == 0.0 and self.lon == 0.0)
+
+
+@dataclass(frozen=True)
+class LandedStateMessage:
+    """EXTENDED_SYS_STATE: ``landed`` one of :data:`LANDED_STATE`'s values."""
+
+    landed: str
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class OriginMessage:
+    """GPS_GLOBAL_ORIGIN: the autopilot's EKF origin, ``lat``/``lon`` rad, ``h_msl`` m."""
+
+    lat: float
+    lon: float
+    h_msl: float
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class StatusTextMessage:
+    """STATUSTEXT: ``severity`` 0 (emergency) .. 7 (debug), ``text``."""
+
+    severity: int
+    text: str
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class CommandAckMessage:
+    command: int
+    result: int
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class ParamMessage:
+    """PARAM_VALUE: ``name``, ``value``."""
+
+    name: str
+    value: float
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
+class TruthMessage:
+    """SIM_STATE (ArduPilot SITL's simulated truth): ``lat``/``lon`` rad, ``h_msl`` m, ``v_n`` NED m/s, ``roll``,
+    ``pitch``, ``yaw`` rad; ``t_rx`` monotonic receive time, s."""
+
+    t_rx: float
+    lat: float
+    lon: float
+    h_msl: float
+    v_n: np.ndarray
+    roll: float
+    pitch: float
+    yaw: float
     sysid: int
     compid: int
 
@@ -164,7 +294,8 @@ class LinkStats:
 
     received: int = 0
     bad_data: int = 0
-    rejected_signature: int = 0
+    rejected_signature: int = 0  # every frame dropped by signing: unsigned or wrongly signed
+    rejected_unsigned: int = 0  # of which unsigned (the peer does not sign)
     foreign_source: int = 0
     sent: int = 0
 
@@ -204,6 +335,32 @@ def unix_to_gps_week(t_unix: float) -> tuple[int, int]:
     t_gps = t_unix - GPS_EPOCH_UNIX_S + GPS_MINUS_UTC_S
     week = int(t_gps // SECONDS_PER_WEEK)
     return week, int(round((t_gps - week * SECONDS_PER_WEEK) * 1000.0))
+
+
+#: pymavlink URL schemes that take HOST:PORT
+_NET_SCHEMES = ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin")
+
+
+def check_url(url: str) -> str:
+    """``url`` if it is a connection the bridge can open (``udpin:HOST:PORT``, ``udpout:``, ``udp:``, ``tcp:``,
+    ``tcpin:`` with a port 1-65535, or a serial device path), else :class:`LinkError` with a one-line message (pymavlink
+    itself answers a bad port with "invalid literal for int()")."""
+    expected = "expected udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or a serial device"
+    text = str(url).strip()
+    scheme, sep, rest = text.partition(":")
+    if sep and scheme.lower() in _NET_SCHEMES:
+        host, _, port = rest.rpartition(":")
+        if not host:
+            raise LinkError(f"--connect {url!r}: no host; {expected}")
+        if not port.isdigit() or not 0 < int(port) < 65536:
+            raise LinkError(f"--connect {url!r}: port {port!r} is not a number 1-65535; {expected}")
+        return text
+    device = text.split(",")[0]
+    if device.startswith(("/dev/", "COM", "/tmp/", "./")) or Path(device).exists():
+        if not Path(device).exists() and not device.startswith("COM"):
+            raise LinkError(f"--connect {url!r}: no such serial device {device}")
+        return text
+    raise LinkError(f"--connect {url!r}: {expected}")
 
 
 def load_signing_key(path: str | os.PathLike[str]) -> bytes:
@@ -257,10 +414,15 @@ class MavLink:
         self._source = (source_system, source_component)
         self._signing_key = signing_key
         self._accept_unsigned = accept_unsigned
+        #: HIGHRES_IMU magnetometer unit found from the magnitude (:func:`highres_mag_to_nt`); None before the first
+        self.mag_unit: str | None = None
+        self._warned_unsigned = False
         self._conn = self._open()
 
     # -- connection --------------------------------------------------------------------------------------
     def _open(self):
+        if not self.url.lower().endswith((".tlog", ".bin")):
+            check_url(self.url)
         try:
             conn = mavutil.mavlink_connection(
                 self.url,
@@ -318,10 +480,12 @@ class MavLink:
             self._pending(timeout)
         t_end = time.monotonic() + budget_s
         while True:
+            rejected = self._rejected()
             try:
                 batch = self._read_messages()
             except Exception as exc:  # noqa: BLE001 - a broken frame or socket error must not stop the bridge
-                self.stats.bad_data += 1
+                if self._rejected() == rejected:  # signing rejections are counted as such, not as junk
+                    self.stats.bad_data += 1
                 log.debug("receive error: %s", exc)
                 batch = []
             self._count_signing()
@@ -352,10 +516,12 @@ class MavLink:
             m = mav.parse_char(data)
             while m is not None:
                 msgs.append(m)
+                rejected = self._rejected()
                 try:
                     m = mav.parse_char(b"")
                 except Exception:  # noqa: BLE001 - the rest of a junk datagram
-                    self.stats.bad_data += 1
+                    if self._rejected() == rejected:
+                        self.stats.bad_data += 1
                     break
             for m in msgs:
                 self._conn.post_message(m)
@@ -375,30 +541,53 @@ class MavLink:
         out = self._decode(msg, kind)
         if out is None:
             return None
-        always = (Heartbeat, OutputMessage, CommandMessage, TimesyncMessage)
+        always = (Heartbeat, OutputMessage, CommandMessage, TimesyncMessage, StatusTextMessage, CommandAckMessage)
         if not isinstance(out, always) and not self._accept_source(msg):
             self.stats.foreign_source += 1
             return None
         return out
 
+    def _rejected(self) -> int:
+        return int(self._conn.mav.signing.reject_count)
+
     def _count_signing(self) -> None:
+        """Frames dropped by signing (pymavlink's counters): every rejection, and of them the unsigned ones (a
+        rejected frame with a bad signature also counts as a bad signature; an unsigned one does not)."""
         signing = self._conn.mav.signing
         self.stats.rejected_signature = int(signing.reject_count)
+        self.stats.rejected_unsigned = max(0, int(signing.reject_count) - int(signing.badsig_count))
+        if self.stats.rejected_unsigned and not self._warned_unsigned:
+            self._warned_unsigned = True
+            log.warning(
+                "signing is on but the peer sends unsigned MAVLink 2 frames: they are dropped "
+                "(the peer does not sign; give it the same key, README 'Signing')"
+            )
 
     def _decode(self, msg, kind: str):  # noqa: C901 - a flat table of message kinds
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         try:
             if kind == "HEARTBEAT":
-                return Heartbeat(*src, int(msg.type), int(msg.autopilot))
+                return Heartbeat(
+                    *src, int(msg.type), int(msg.autopilot), int(msg.base_mode), int(msg.custom_mode),
+                    int(msg.system_status),
+                )  # fmt: skip
             if kind == "HIGHRES_IMU":
                 fields = int(msg.fields_updated)
                 mag = None
                 m = np.array([msg.xmag, msg.ymag, msg.zmag], float)
                 if (fields & 0b111000000 or fields == 0) and np.all(np.isfinite(m)) and np.linalg.norm(m) > 0:
                     try:
-                        mag, _unit = highres_mag_to_nt(m)
+                        mag, unit = highres_mag_to_nt(m)
                     except InputError:
                         mag = None
+                    else:
+                        if unit != self.mag_unit:
+                            log.info(
+                                "HIGHRES_IMU magnetometer from %d/%d is in %s (|B| = %.5g in that unit)%s",
+                                *src, unit, float(np.linalg.norm(m)),
+                                "" if self.mag_unit is None else f"; was {self.mag_unit}",
+                            )  # fmt: skip
+                            self.mag_unit = unit
                 return ImuMessage(
                     msg.time_usec * 1e-6,
                     np.array([msg.xgyro, msg.ygyro, msg.zgyro], float),
@@ -428,6 +617,47 @@ class MavLink:
                     np.array([msg.vx, msg.vy, msg.vz], float) * 1e-2,
                     *src,
                 )
+            if kind in ("GPS_RAW_INT", "GPS2_RAW"):
+                d = msg.to_dict()
+                h_ell = d.get("alt_ellipsoid", 0)
+                h_acc, v_acc = d.get("h_acc", 0), d.get("v_acc", 0)
+                return GnssMessage(
+                    msg.time_usec * 1e-6,
+                    0 if kind == "GPS_RAW_INT" else 1,
+                    int(msg.fix_type),
+                    math.radians(msg.lat / DEG_E7),
+                    math.radians(msg.lon / DEG_E7),
+                    msg.alt * 1e-3,
+                    h_ell * 1e-3 if h_ell else math.nan,
+                    h_acc * 1e-3 if h_acc else math.nan,
+                    v_acc * 1e-3 if v_acc else math.nan,
+                    msg.eph * 1e-2 if msg.eph != 0xFFFF else math.nan,
+                    int(msg.satellites_visible) if msg.satellites_visible != 0xFF else -1,
+                    msg.vel * 1e-2 if msg.vel != 0xFFFF else math.nan,
+                    math.radians(msg.cog * 1e-2) if msg.cog != 0xFFFF else math.nan,
+                    *src,
+                )
+            if kind == "EXTENDED_SYS_STATE":
+                return LandedStateMessage(LANDED_STATE.get(int(msg.landed_state), "undefined"), *src)
+            if kind == "GPS_GLOBAL_ORIGIN":
+                return OriginMessage(
+                    math.radians(msg.latitude / DEG_E7), math.radians(msg.longitude / DEG_E7), msg.altitude * 1e-3, *src
+                )
+            if kind == "STATUSTEXT":
+                text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("ascii", "replace")
+                return StatusTextMessage(int(msg.severity), text.rstrip("\x00"), *src)
+            if kind == "COMMAND_ACK":
+                return CommandAckMessage(int(msg.command), int(msg.result), *src)
+            if kind == "PARAM_VALUE":
+                name = msg.param_id if isinstance(msg.param_id, str) else bytes(msg.param_id).decode("ascii", "replace")
+                return ParamMessage(name.rstrip("\x00"), float(msg.param_value), *src)
+            if kind == "SIM_STATE":
+                lat = msg.lat_int / DEG_E7 if getattr(msg, "lat_int", 0) else msg.lat
+                lon = msg.lon_int / DEG_E7 if getattr(msg, "lon_int", 0) else msg.lon
+                return TruthMessage(
+                    time.monotonic(), math.radians(lat), math.radians(lon), float(msg.alt),
+                    np.array([msg.vn, msg.ve, msg.vd], float), float(msg.roll), float(msg.pitch), float(msg.yaw), *src,
+                )  # fmt: skip
             if kind == "SCALED_PRESSURE":
                 return PressureMessage(msg.time_boot_ms * 1e-3, msg.press_abs * 100.0, msg.temperature * 1e-2, *src)
             if kind == "TIMESYNC":
@@ -511,6 +741,25 @@ class MavLink:
             )
         )
 
+    def request_message(self, name: str, target_system: int, target_component: int) -> None:
+        """MAV_CMD_REQUEST_MESSAGE (512): send message ``name`` once (e.g. GPS_GLOBAL_ORIGIN)."""
+        self.send_command_long(REQUEST_MESSAGE, (MSG_ID[name],), target_system, target_component)
+
+    def send_command_long(
+        self, command: int, params: Iterable[float], target_system: int, target_component: int
+    ) -> None:
+        """COMMAND_LONG ``command`` with up to seven parameters (missing ones 0)."""
+        p = [float(x) for x in params][:7]
+        p += [0.0] * (7 - len(p))
+        self._send(lambda: self.mav.command_long_send(target_system, target_component, int(command), 0, *p))
+
+    def send_command_ack(self, command: int, result: int, target_system: int, target_component: int) -> None:
+        self._send(
+            lambda: self.mav.command_ack_send(
+                int(command), int(result), 0, 0, int(target_system), int(target_component)
+            )
+        )
+
     def send_timesync(self, tc1: int, ts1: int) -> None:
         self._send(lambda: self.mav.timesync_send(tc1, ts1))
 
@@ -543,19 +792,25 @@ class MavLink:
         sigma_speed: float,
         healthy: bool,
         satellites: int = 10,
+        gps_id: int = 0,
+        ignore_flags: int = 0,
     ) -> None:
-        """GPS_INPUT for ArduPilot ``GPS1_TYPE=14``. Unhealthy -> fix_type 1 (no fix), position zeroed: the stream keeps
-        flowing (a pause makes ArduPilot report "Bad fix") but no untrusted position is sent."""
+        """GPS_INPUT for ArduPilot ``GPSn_TYPE=14`` (``gps_id`` 0 = GPS1, 1 = GPS2). Unhealthy -> fix_type 1 (no fix),
+        position zeroed: the stream keeps flowing (a pause makes ArduPilot report "Bad fix") but no untrusted position
+        is sent. HDOP and VDOP are ``sigma / 3`` (a 3 m user range error; the position has no satellite geometry),
+        at least 0.5; ``ignore_flags``: :data:`GPS_INPUT_IGNORE_VEL` and friends for fields the sender does not
+        know."""
         week, week_ms = unix_to_gps_week(t_unix)
         fix_type = 3 if healthy else 1
         lat_e7 = int(round(math.degrees(lat) * DEG_E7)) if healthy else 0
         lon_e7 = int(round(math.degrees(lon) * DEG_E7)) if healthy else 0
         hdop = max(0.5, sigma_h / 3.0) if healthy else 99.0
+        vdop = max(0.5, sigma_v / 3.0) if healthy and math.isfinite(sigma_v) else 99.0
         self._send(
             lambda: self.mav.gps_input_send(
                 int(t_unix * 1e6),
-                0,
-                0,
+                int(gps_id),
+                int(ignore_flags),
                 week_ms,
                 week,
                 fix_type,
@@ -563,7 +818,7 @@ class MavLink:
                 lon_e7,
                 float(h_msl if healthy else 0.0),
                 hdop,
-                hdop,
+                vdop,
                 float(v_n[0]),
                 float(v_n[1]),
                 float(v_n[2]),
@@ -720,6 +975,104 @@ class MavLink:
             )
         )
 
+    def send_gps_raw_int(
+        self,
+        t: float,
+        fix_type: int,
+        lat: float,
+        lon: float,
+        h_msl: float,
+        *,
+        sigma_h: float = 1.0,
+        sigma_v: float = 2.0,
+        satellites: int = 12,
+        speed: float = 0.0,
+        course: float = 0.0,
+    ) -> None:
+        """GPS_RAW_INT (the autopilot's GNSS receiver): ``t`` s on the boot clock, lat/lon rad, h m MSL."""
+        self._send(
+            lambda: self.mav.gps_raw_int_send(
+                int(round(t * 1e6)),
+                int(fix_type),
+                int(round(math.degrees(lat) * DEG_E7)),
+                int(round(math.degrees(lon) * DEG_E7)),
+                int(round(h_msl * 1000)),
+                int(round(sigma_h * 100)),
+                int(round(sigma_v * 100)),
+                int(round(speed * 100)),
+                int(round(math.degrees(course % (2 * math.pi)) * 100)) % 36000,
+                int(satellites),
+                int(round(h_msl * 1000)),
+                int(round(sigma_h * 1000)),
+                int(round(sigma_v * 1000)),
+                100,
+                0,
+                0,
+            )
+        )
+
+    def send_extended_sys_state(self, landed: str) -> None:
+        code = {v: k for k, v in LANDED_STATE.items()}[landed]
+        self._send(lambda: self.mav.extended_sys_state_send(0, code))
+
+    def send_gps_global_origin(self, lat: float, lon: float, h_msl: float) -> None:
+        self._send(
+            lambda: self.mav.gps_global_origin_send(
+                int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)), int(round(h_msl * 1e3))
+            )
+        )
+
+    # -- used by a ground station (the SITL benchmark and tests) -------------------------------------------
+    def param_set(self, name: str, value: float, target_system: int = 1, target_component: int = 1) -> None:
+        self._send(
+            lambda: self.mav.param_set_send(
+                target_system, target_component, name.encode(), float(value), mavlink2.MAV_PARAM_TYPE_REAL32
+            )
+        )
+
+    def param_request(self, name: str, target_system: int = 1, target_component: int = 1) -> None:
+        self._send(lambda: self.mav.param_request_read_send(target_system, target_component, name.encode(), -1))
+
+    def set_mode(self, mode: str, target_system: int = 1, target_component: int = 1) -> None:
+        """MAV_CMD_DO_SET_MODE to an ArduCopter flight mode by name (GUIDED, LAND, RTL, ...)."""
+        number = {v: k for k, v in mavutil.mode_mapping_acm.items()}.get(mode.upper())
+        if number is None:
+            raise InputError(f"unknown ArduCopter mode {mode!r}")
+        self.send_command_long(
+            mavlink2.MAV_CMD_DO_SET_MODE,
+            (mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number),
+            target_system,
+            target_component,
+        )
+
+    @staticmethod
+    def copter_mode_name(custom_mode: int) -> str:
+        return mavutil.mode_mapping_acm.get(int(custom_mode), str(custom_mode))
+
+    def arm(self, arm: bool = True, target_system: int = 1, target_component: int = 1) -> None:
+        self.send_command_long(
+            mavlink2.MAV_CMD_COMPONENT_ARM_DISARM, (1.0 if arm else 0.0,), target_system, target_component
+        )
+
+    def takeoff(self, altitude_m: float, target_system: int = 1, target_component: int = 1) -> None:
+        """MAV_CMD_NAV_TAKEOFF to ``altitude_m`` above home (GUIDED)."""
+        self.send_command_long(
+            mavlink2.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, altitude_m), target_system, target_component
+        )
+
+    def goto(
+        self, lat: float, lon: float, altitude_m: float, target_system: int = 1, target_component: int = 1
+    ) -> None:
+        """SET_POSITION_TARGET_GLOBAL_INT (GUIDED): fly to ``lat``/``lon`` rad at ``altitude_m`` above home."""
+        mask = 0b110111111000  # position only
+        self._send(
+            lambda: self.mav.set_position_target_global_int_send(
+                0, target_system, target_component, mavlink2.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mask,
+                int(round(math.degrees(lat) * DEG_E7)), int(round(math.degrees(lon) * DEG_E7)), float(altitude_m),
+                0, 0, 0, 0, 0, 0, 0, 0,
+            )
+        )  # fmt: skip
+
     def send_scaled_pressure(self, t: float, pressure_pa: float, temperature_c: float = 15.0) -> None:
         """SCALED_PRESSURE: ``t`` s (sent as ``time_boot_ms``), static pressure Pa (sent as hPa), temperature degC."""
         self._send(lambda: self.mav.send(_scaled_pressure(self.mav, t, pressure_pa, temperature_c)))
@@ -748,6 +1101,8 @@ def iter_tlog(path: str | os.PathLike[str]) -> Iterator[object]:
     reader.stats = LinkStats()
     reader.peer_system = None
     reader.peer_component = None
+    reader.mag_unit = None
+    reader._warned_unsigned = False
     reader._conn = conn
     try:
         while True:

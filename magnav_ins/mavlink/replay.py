@@ -1,10 +1,8 @@
 """Replay a recorded flight through the online pipeline the MAVLink bridge runs (``magnav-ins replay``).
 
-Three parts:
+The pipeline is the bridge's own (:func:`.online.make_online_pipeline`, shared by both, so that a replay reproduces
+what the companion computer would have computed). Two parts here:
 
-* :func:`make_online_pipeline` - THE factory of the online pipeline (INS + map matcher + fuser,
-  :class:`magnav_ins.pipeline.Pipeline`), shared by the bridge (:mod:`.bridge`) and the replay, so that a replay
-  reproduces what the companion computer would have computed.
 * :func:`read_log` - a recording as a :class:`LogRecording` in SI and our frames: PX4 ULog (through
   :mod:`.ulog`), MAVLink telemetry log (through :func:`.link.iter_tlog`) or a CSV. Bad input (not a log, a missing
   topic, NaN samples, time going backwards) raises :class:`~magnav_ins.core.errors.InputError` naming the file, the
@@ -38,9 +36,12 @@ from numpy.typing import NDArray
 
 from ..core.errors import ConfigError, InputError
 from ..core.frames import horizontal_error_m, q_nb_from_euler
-from ..core.types import Fix, ImuBatch, Innovation, NavEstimate, NavState
+from ..core.types import Fix, ImuBatch, Innovation, NavState
 from ..core.units import NT_PER_GAUSS
 from .baro import BaroHeight, hold_height
+from .online import make_online_pipeline
+
+__all__ = ["LogRecording", "ReplayResult", "make_online_pipeline", "read_log", "replay", "write_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -76,73 +77,6 @@ LEVELLING_S = 1.0
 #: initial 1-sigmas with --init: roll/pitch levelled from the specific force (rad), a heading given by hand (rad)
 INIT_TILT_SIGMA_RAD = 0.01
 INIT_YAW_SIGMA_RAD = 0.05
-
-
-# ------------------------------------------------------------------------------------------------ the factory
-def make_online_pipeline(
-    nav0: NavState,
-    sigma_pos_m: float,
-    fmap: Any,
-    *,
-    grade: str = "tactical",
-    matcher: str | dict[str, Any] = "mlr",
-    fusion: str = "ukf",
-    reading_sigma: float = 5.0,
-    window: int = 30,
-    match_every: int = 10,
-    velocity_sigma_mps: float = 0.2,
-    attitude_sigma_rad: tuple[float, float, float] = (0.005, 0.005, 0.02),
-    altitude_hold: bool = True,
-    rng: np.random.Generator | None = None,
-):
-    """The online pipeline of the bridge and the replay, starting from ``nav0``.
-
-    ``sigma_pos_m``: 1-sigma of the initial north/east position (m; the down sigma is the same); ``fmap``: the map
-    (its ``kind`` is the readings' kind); ``grade``: IMU grade name (:func:`magnav_ins.ins.imu_models.get_grade`) for
-    the filter's noise and initial bias covariance; ``matcher``: a registry kind (``"mlr"``) or a full config dict
-    (:func:`magnav_ins.aiding.matchers.registry.build_matcher`), ``"none"`` for no matching; ``fusion``: ``ukf`` |
-    ``graph`` | ``free_inertial`` (:func:`magnav_ins.aiding.fusion.make_fuser`); ``reading_sigma``: 1-sigma of a
-    reading in the map's unit (sensor noise and uncompensated vehicle field); ``window`` / ``match_every``: readings
-    per batch-matcher window and between match attempts (:class:`~magnav_ins.pipeline.Pipeline`);
-    ``velocity_sigma_mps`` (m/s) and ``attitude_sigma_rad`` (roll, pitch, yaw, rad): initial 1-sigmas;
-    ``altitude_hold``: clamp the INS height to ``nav0.h`` (the free vertical channel diverges in minutes); the
-    bridge and :func:`replay` move the clamp to the barometric height when pressure arrives
-    (:func:`.baro.hold_height`). Returns a :class:`~magnav_ins.pipeline.Pipeline` (``push_imu``, ``push_reading``,
-    ``estimate``).
-    """
-    from ..aiding.fusion import ImuNoise, make_fuser
-    from ..aiding.matchers.registry import build_matcher
-    from ..ins.error_model import initial_covariance
-    from ..ins.imu_models import get_grade
-    from ..pipeline import Pipeline
-
-    if not (math.isfinite(sigma_pos_m) and sigma_pos_m > 0):
-        raise ConfigError(f"initial position sigma must be a positive number of metres, got {sigma_pos_m!r}")
-    g = get_grade(grade)
-    P0 = initial_covariance(g, sigma_pos_m, velocity_sigma_mps, np.asarray(attitude_sigma_rad, float))
-    if altitude_hold:
-        P0[2, :] = P0[:, 2] = 0.0  # height clamped: no vertical position / velocity error
-        P0[5, :] = P0[:, 5] = 0.0
-    init = NavEstimate(nav0, P0)
-    options: dict[str, Any] = {}
-    if fusion in ("ukf", "free_inertial") and altitude_hold:
-        options["altitude_hold"] = float(nav0.h)
-    fuser = make_fuser(fusion, init, ImuNoise.from_grade(g), **options)
-    m = None
-    if fusion != "free_inertial" and matcher not in (None, "none"):
-        m = build_matcher({"kind": matcher} if isinstance(matcher, str) else dict(matcher))
-    kind = getattr(fmap, "kind", None)
-    return Pipeline(
-        fuser,
-        m,
-        fmap if m is not None else None,
-        window=window,
-        match_every=match_every,
-        reading_sigma=float(reading_sigma),
-        reading_kind=kind,
-        height_aid=None,
-        rng=rng if rng is not None else np.random.default_rng(0),
-    )
 
 
 # ------------------------------------------------------------------------------------------------ recordings

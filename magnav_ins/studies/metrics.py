@@ -22,7 +22,9 @@ Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
   ``divergence_rate`` is the fraction of runs that diverge.
 
 Besides DESIGN.md's keys each entry holds ``fix_error_bins`` (the four bins above), ``fix_within_3m_fraction``,
-``fix_attempts``, ``fixes_issued`` and ``non_finite_fraction`` (share of error samples that were not finite: an
+``fix_attempts``, ``fixes_issued``, ``no_fix_reasons`` (how often each class of "no fix" reason occurred over all
+runs, the text before the reason's first colon: "flat map", "diverged", ...; added by :mod:`.runner`) and
+``non_finite_fraction`` (share of error samples that were not finite: an
 estimator that blew up). Undefined values (no fixes, no covariance) are ``null``.
 """
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..core.errors import ConfigError, MagnavError
 from ..core.frames import euler_from_q_nb, meters_to_latlon, q_nb_from_euler
-from ..core.types import LAYOUT_15, FieldReadings, NavEstimate, NavState, NavTrajectory
+from ..core.types import LAYOUT_15, FieldKind, FieldReadings, NavEstimate, NavState, NavTrajectory
 from ..core.units import DEG_TO_RAD
 from .runner import EstimatorOutput, RunOutput
 from .scenario import FREE_INERTIAL, Scenario
@@ -74,11 +74,14 @@ def build_truth(sc: Scenario) -> NavTrajectory:
             traj = simulate.waypoints(pts, tr.speed_mps, rate)
         elif tr.kind == "survey_line":
             line = survey_line_points(sc)
-            if len(tr.lines) > 1:
+            if len(np.unique(line["line"])) > 1:
                 lat, lon, h = _with_run_ins(line, SURVEY_RUN_IN_M)
                 traj = simulate.survey_line(lat, lon, h, tr.speed_mps, rate, turn_rate=SURVEY_TURN_RATE)
             else:
                 traj = simulate.survey_line(line["lat"], line["lon"], line["h"], tr.speed_mps, rate)
+        elif tr.kind == "lawnmower":
+            turn = (tr.turn_rate_deg_s or LAWNMOWER_TURN_RATE_DEG_S) * DEG_TO_RAD
+            traj = simulate.waypoints(lawnmower_points(tr), tr.speed_mps, rate, turn_rate=turn)  # type: ignore[arg-type]
         else:
             traj = simulate.trajectory_from_csv(tr.path)  # type: ignore[arg-type]
     except MagnavError as exc:
@@ -87,6 +90,39 @@ def build_truth(sc: Scenario) -> NavTrajectory:
         n = int(np.searchsorted(traj.t, traj.t[0] + tr.duration_s, side="right"))
         traj = traj.slice(0, max(n, 2))
     return traj
+
+
+#: default turn rate of a lawnmower flight between legs (deg/s; 3 deg/s = a rate-one turn)
+LAWNMOWER_TURN_RATE_DEG_S = 3.0
+
+
+def lawnmower_points(tr: Any) -> np.ndarray:
+    """Corner points ``(N, 3)`` (lat, lon rad, h m) of a ``lawnmower`` trajectory: ``legs`` parallel legs of
+    ``leg_length_m`` starting at ``start_deg`` along ``heading_deg`` (clockwise from north), each next leg
+    ``leg_spacing_m`` to the right of the previous one and flown the other way; the pattern is then flown back
+    (legs in reverse order) and again, as many times as ``duration_s`` at ``speed_mps`` needs (one pass without a
+    duration). Offsets are laid out on the local tangent plane of the start point (flat-Earth: the tile is small)."""
+    from ..core.frames import meters_to_latlon
+
+    lat0, lon0 = (x * DEG_TO_RAD for x in tr.start_deg)
+    psi = float(tr.heading_deg) * DEG_TO_RAD
+    u = np.array([np.cos(psi), np.sin(psi)])  # along the first leg (north, east)
+    r = np.array([-u[1], u[0]])  # to its right
+    L, S, n = float(tr.leg_length_m), float(tr.leg_spacing_m), int(tr.legs)
+    one = []
+    for k in range(n):
+        a, b = k * S * r, k * S * r + L * u
+        one += [a, b] if k % 2 == 0 else [b, a]
+    one = np.array(one)
+    seq = [one]
+    length = float(np.sum(np.hypot(*np.diff(one, axis=0).T)))
+    if tr.duration_s is not None and length > 0:
+        passes = int(np.ceil(tr.duration_s * tr.speed_mps / length)) + 1
+        for p in range(1, passes):
+            seq.append(one[::-1][1:] if p % 2 else one[1:])
+    ne = np.concatenate(seq)
+    dlat, dlon = meters_to_latlon(ne[:, 0], ne[:, 1], lat0, tr.altitude_m)
+    return np.column_stack([lat0 + dlat, lon0 + dlon, np.full(len(ne), float(tr.altitude_m))])
 
 
 #: a several-line survey flight overshoots each line end by this much (m) before turning onto the next line
@@ -128,11 +164,26 @@ def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
     from ..maps import io as maps_io
 
     tr = sc.trajectory
-    ids = tr.lines or (tr.line,)
+    try:
+        survey = maps_io.read_survey(tr.survey, **tr.survey_options())  # type: ignore[arg-type]
+    except MagnavError as exc:
+        raise ConfigError(f"{sc.where('trajectory.survey')}: {exc}") from None
+    ids: tuple[int, ...] = tr.lines or ((tr.line,) if tr.line is not None else ())
+    if tr.line_type is not None:
+        try:
+            of_type = survey.ids_of_type(tr.line_type)
+        except MagnavError as exc:
+            raise ConfigError(f"{sc.where('trajectory.line_type')}: {exc}") from None
+        if ids:  # both given: the listed lines, which must be of that type
+            wrong = [i for i in ids if i not in of_type]
+            if wrong:
+                raise ConfigError(f"{sc.where('trajectory.line')}: lines {wrong} are not of line_type {tr.line_type!r}")
+        else:
+            ids = tuple(of_type)
     parts: list[dict[str, np.ndarray]] = []
     for ln in ids:
         try:
-            p = maps_io.read_survey_line(tr.survey, ln)  # type: ignore[arg-type]
+            p = maps_io.survey_line(survey, ln)
         except MagnavError as exc:
             raise ConfigError(f"{sc.where('trajectory.line')}: {exc}") from None
         if parts:
@@ -146,9 +197,16 @@ def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
     return {k: np.concatenate([p[k] for p in parts]) for k in ("lat", "lon", "h", "value", "line")}
 
 
+#: ``[map] options`` that select :func:`magnav_ins.studies.grids.read_gravity_grid` (a downloaded gravity grid read
+#: with an explicit unit and optionally continued upward) instead of ``maps.io.load_map``
+GRID_OPTIONS = frozenset({"unit", "continue_to_m", "variable"})
+
+
 def build_map(sc: Scenario) -> Any:
     """The scenario's map: ``synthetic:random_field`` / ``synthetic:hallway`` (``maps.synthetic``, drawn from
-    ``[map] options.seed``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load)."""
+    ``[map] options.seed``), a downloaded gravity grid when the options hold any of :data:`GRID_OPTIONS`
+    (:func:`magnav_ins.studies.grids.read_gravity_grid`: ``unit``, ``altitude_m``, ``datum``, ``variable``,
+    ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load)."""
     m = sc.map
     if m is None:
         raise ConfigError(f"{sc.source}: the scenario has no [map]")
@@ -196,10 +254,27 @@ def build_map(sc: Scenario) -> Any:
     from ..maps import io as maps_io
 
     try:
-        fmap = maps_io.load_map(
-            m.path, grid_spacing_m=m.grid_spacing_m, exclude_lines=list(m.exclude_lines) or None, **opts
-        )
+        if GRID_OPTIONS & set(opts):  # a downloaded gravity grid with an explicit unit (studies.grids)
+            from .grids import read_gravity_grid
+
+            if m.kind is not FieldKind.GRAVITY_DISTURBANCE_MGAL:
+                raise ConfigError(
+                    f"{sc.where('map.options')}: options {sorted(GRID_OPTIONS & set(opts))} read gravity grids; "
+                    f"[map] kind is {m.kind.value}"
+                )
+            try:
+                fmap = read_gravity_grid(m.path, kind=m.kind, **opts)
+            except TypeError as exc:
+                raise ConfigError(f"{sc.where('map.options')}: {exc}") from None
+        else:
+            if m.path.lower().endswith(maps_io.SURVEY_SUFFIXES):
+                opts = {"kind": m.kind, **m.load_options(), **opts}
+            fmap = maps_io.load_map(
+                m.path, grid_spacing_m=m.grid_spacing_m, exclude_lines=list(m.exclude_lines) or None, **opts
+            )
     except MagnavError as exc:
+        if isinstance(exc, ConfigError):
+            raise
         raise ConfigError(f"{sc.where('map.path')}: {exc}") from None
     if fmap.kind is not m.kind:
         raise ConfigError(f"{sc.where('map.kind')}: the map holds {fmap.kind.value}, the scenario says {m.kind.value}")
@@ -310,6 +385,20 @@ class PipelineModel:
     def shared(self) -> dict[str, Any]:
         """Truth, ideal IMU and map (memoised per process)."""
         return _shared(self.scenario)
+
+    def crlb_metrics(self) -> dict[str, float]:
+        """The flight's posterior Cramér-Rao bound (:mod:`magnav_ins.studies.crlb`): ``crlb_rms_horizontal_m`` and
+        ``crlb_final_horizontal_m`` for ``metrics.json``; empty without readings or with a non-grid map."""
+        from .crlb import crlb_metrics, flight_crlb
+
+        sc = self.scenario
+        sh = self.shared()
+        if sc.sensor is None or sh["map"] is None or not hasattr(sh["map"], "gradient_ne"):
+            return {}
+        if sc.sensor.source != "simulated":
+            return {}  # real readings: the bound of the simulated readings would not be theirs
+        t, sig = flight_crlb(sc, sh["truth"], sh["imu"], sh["map"])
+        return crlb_metrics(t, sig)
 
     def run(self, seed: np.random.SeedSequence) -> RunOutput:
         from ..ins import imu_models
@@ -478,4 +567,5 @@ def run_estimator(
         np.array([f.lon for f in fixes], float),
         np.array([np.asarray(f.cov_ne, float) for f in fixes], float).reshape(-1, 2, 2),
         np.array([f.available for f in fixes], bool),
+        tuple(f.reason for f in fixes),
     )

@@ -18,6 +18,7 @@ PNG figures.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -47,7 +48,8 @@ class EstimatorOutput:
 
     ``lat``, ``lon`` (N,) rad; ``cov_ne`` (N,2,2) m^2 horizontal covariance or None (free inertial without a
     filter). Fixes: ``fix_t`` (K,) s, ``fix_lat``, ``fix_lon`` (K,) rad (NaN for "no fix"), ``fix_cov_ne``
-    (K,2,2) m^2, ``fix_available`` (K,) bool; one entry per fix attempt.
+    (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the reason of each "no fix" ("" for a fix); one
+    entry per fix attempt.
     """
 
     name: str
@@ -61,6 +63,7 @@ class EstimatorOutput:
     fix_lon: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     fix_cov_ne: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2, 2)))
     fix_available: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    fix_reason: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -104,6 +107,13 @@ class EstimatorSummary:
     fix_sigma_e: NDArray[np.float32]
     fix_corr_ne: NDArray[np.float32]
     fix_available: NDArray[np.bool_]
+    no_fix_reasons: dict[str, int] = field(default_factory=dict)
+
+
+def reason_category(reason: str) -> str:
+    """The class of a "no fix" reason: the text before its first colon (``"flat map"``, ``"diverged"``,
+    ``"off the map"``, ...), as :func:`magnav_ins.aiding.matchers.metrics.no_fix_reasons` counts them."""
+    return reason.split(":", 1)[0].strip() or "unspecified"
 
 
 @dataclass
@@ -172,9 +182,14 @@ def summarise_run(
             divergent=M.is_divergent(e, e_free),
         )
         sn, se, rho = _cov_parts(cov, len(sel))
+        reasons: dict[str, int] = {}
+        for a, why in zip(fix_avail, est.fix_reason, strict=False):
+            if not a:
+                c = reason_category(why)
+                reasons[c] = reasons.get(c, 0) + 1
         res[est.name] = EstimatorSummary(
             est.matcher, est.fusion, rm, dn.astype(np.float32), de.astype(np.float32), sn, se, rho,
-            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail,
+            fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail, reasons,
         )  # fmt: skip
     return RunSummary(index, t, lat_t, lon_t, res, wall_s)
 
@@ -224,20 +239,65 @@ def execute(
                 results[i] = _run_task(model, i, ss, max_samples)
                 bar.update(1)
         else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
-                try:
-                    for fut in as_completed(futs):
-                        results[futs[fut]] = fut.result()
-                        bar.update(1)
-                except BrokenProcessPool as exc:
-                    raise RuntimeError(
-                        "a worker process died during a Monte Carlo run (killed by the OS, e.g. out of memory); "
-                        "nothing was written - retry with fewer --jobs"
-                    ) from exc
+            _execute_pool(model, seeds, jobs, max_samples, results, bar.update)
     finally:
         bar.close()
     return [r for r in results if r is not None]
+
+
+def _execute_pool(
+    model: StudyModel,
+    seeds: Sequence[np.random.SeedSequence],
+    jobs: int,
+    max_samples: int,
+    results: list[RunSummary | None],
+    progress: Callable[[int], Any],
+) -> None:
+    """The runs in ``jobs`` local worker processes. Workers ignore SIGINT and die with their parent
+    (:func:`magnav_ins.core.signals.worker_init`); on any exception here (Ctrl-C, SIGTERM, a failed run) the queued
+    runs are cancelled and the workers are terminated at once, not waited for: nothing is left running."""
+    import os
+
+    from ..core.signals import worker_init
+
+    pool = ProcessPoolExecutor(max_workers=jobs, initializer=worker_init, initargs=(os.getpid(),))
+    try:
+        futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
+        for fut in as_completed(futs):
+            results[futs[fut]] = fut.result()
+            progress(1)
+    except BrokenProcessPool as exc:
+        _stop_pool(pool)
+        raise RuntimeError(
+            "a worker process died during a Monte Carlo run (killed by the OS, e.g. out of memory); "
+            "nothing was written - retry with fewer --jobs"
+        ) from exc
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+#: seconds given to closing the connection to a Dask scheduler
+_DASK_CLOSE_S = 3.0
+#: seconds a terminated worker gets to exit before it is killed
+_WORKER_STOP_S = 2.0
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Cancel what is queued and end every worker now: SIGTERM, then SIGKILL after ``_WORKER_STOP_S``.
+    (:class:`ProcessPoolExecutor` has no public way to stop running tasks; its ``_processes`` map is read once.)"""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    deadline = time.monotonic() + _WORKER_STOP_S
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(1.0)
 
 
 def _execute_dask(
@@ -256,6 +316,7 @@ def _execute_dask(
         client = Client(scheduler) if own else scheduler
     except OSError as exc:
         raise ConfigError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})") from None
+    futs: list[Any] = []
     try:
         [model_f] = client.scatter([model], broadcast=True)
         futs = [client.submit(_run_task, model_f, i, ss, max_samples, pure=False) for i, ss in enumerate(seeds)]
@@ -263,9 +324,17 @@ def _execute_dask(
         for fut in dask_completed(futs):
             results[index[fut.key]] = fut.result()
             progress(1)
+    except BaseException:
+        # Ctrl-C, SIGTERM or a failed run: withdraw every run from the cluster (queued ones never start; a running
+        # one finishes on its worker and is discarded), so the cluster is free for the next study
+        if futs:
+            with contextlib.suppress(Exception):
+                client.cancel(futs, force=True)
+        raise
     finally:
         if own:
-            client.close()
+            with contextlib.suppress(Exception):
+                client.close(timeout=_DASK_CLOSE_S)
 
 
 # ------------------------------------------------------------------------------------------------ aggregation
@@ -283,6 +352,11 @@ def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: s
     for nm in names:
         es = [s.estimators[nm] for s in summaries]
         entry = M.aggregate([e.metrics for e in es], es[0].matcher, es[0].fusion)
+        counts: dict[str, int] = {}
+        for e in es:  # how often each "no fix" reason occurred, over all runs (issue 16)
+            for c, k in e.no_fix_reasons.items():
+                counts[c] = counts.get(c, 0) + k
+        entry["no_fix_reasons"] = dict(sorted(counts.items()))
         if nm == FREE_INERTIAL:
             doc["free_inertial"] = entry
         else:
@@ -401,6 +475,9 @@ def run_study(
     t0 = time.perf_counter()
     summaries = execute(model, runs, seed, jobs, scheduler, quiet, max_samples)
     doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name)
+    bound = getattr(model, "crlb_metrics", None)
+    if callable(bound):  # the flight's posterior CRLB, the limit column of the comparisons (studies.crlb)
+        doc.update(bound())
     if out_dir is not None:
         write_outputs(out_dir, summaries, doc, plots=plots, fmap=fmap, command=command)
     return doc

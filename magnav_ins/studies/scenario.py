@@ -28,7 +28,7 @@ from ..core.types import FieldKind
 
 #: IMU grades understood by ``ins.imu_models.get_grade`` (Storms Table 2.2; Wang Table 1)
 IMU_GRADES = ("consumer", "commercial", "tactical", "navigation", "precision", "quantum")
-TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file")
+TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file", "lawnmower")
 SENSOR_KINDS = {
     "gravimeter": FieldKind.GRAVITY_DISTURBANCE_MGAL,
     "scalar_magnetometer": FieldKind.TOTAL_FIELD_ANOMALY_NT,
@@ -103,7 +103,14 @@ class TrajectoryConfig:
     ``builtin:NAME``, ``line`` id or list of ids, ``speed_mps``; altitude from the survey), ``file`` (``path``
     CSV). ``duration_s`` (optional) truncates the trajectory. ``lines`` holds every line id of a ``survey_line``
     flight in flying order (``line`` is the first); several lines are flown one after the other, as a survey
-    aircraft flies adjacent lines (:func:`magnav_ins.studies.model.survey_line_points`).
+    aircraft flies adjacent lines (:func:`magnav_ins.studies.model.survey_line_points`). A ``survey_line`` may
+    instead (or as well) name a ``line_type`` (e.g. ``"TIE"``): every line of that type, in id order (with ``line``:
+    those of the listed lines); ``columns`` maps our survey column names to the file's
+    (:func:`magnav_ins.maps.io.read_survey`), ``geoid_m`` replaces the shipped geoid for orthometric heights. ``lawnmower`` (``start``
+    [lat, lon] deg, ``heading_deg`` of the first leg, ``leg_length_m``, ``leg_spacing_m``, ``legs``, ``altitude_m``,
+    ``speed_mps``, optional ``turn_rate_deg_s``, default 3): parallel legs joined by turns, each next leg
+    ``leg_spacing_m`` to the right, the pattern flown back and forth until ``duration_s``
+    (:func:`magnav_ins.studies.model.lawnmower_points`): a long flight folded into one map tile.
     """
 
     kind: str
@@ -117,6 +124,23 @@ class TrajectoryConfig:
     lines: tuple[int, ...] = ()
     path: str | None = None
     duration_s: float | None = None
+    heading_deg: float | None = None
+    leg_length_m: float | None = None
+    leg_spacing_m: float | None = None
+    legs: int | None = None
+    turn_rate_deg_s: float | None = None
+    line_type: str | None = None
+    columns: tuple[tuple[str, str], ...] = ()
+    geoid_m: float | None = None
+
+    def survey_options(self) -> dict[str, Any]:
+        """Keyword arguments for :func:`magnav_ins.maps.io.read_survey` (column mapping, geoid override)."""
+        out: dict[str, Any] = {}
+        if self.columns:
+            out["columns"] = dict(self.columns)
+        if self.geoid_m is not None:
+            out["geoid_undulation_m"] = self.geoid_m
+        return out
 
 
 @dataclass(frozen=True)
@@ -141,13 +165,32 @@ class InitConfig:
 class MapConfig:
     """Map spec: a NetCDF path, ``builtin:NAME``, ``synthetic:NAME`` or a survey CSV(.xz) gridded on load
     (``grid_spacing_m``, ``exclude_lines``). ``kind`` is a :class:`FieldKind` value. ``options`` holds extra
-    keys for synthetic maps (e.g. ``seed``)."""
+    keys for synthetic maps (e.g. ``seed``). For a survey: ``columns`` (our name -> the file's column),
+    ``geoid_m`` (geoid undulation for orthometric heights; default the shipped geoid), ``line_type`` (grid only
+    the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``)."""
 
     path: str
     kind: FieldKind
     grid_spacing_m: float | None = None
     exclude_lines: tuple[int, ...] = ()
     options: dict[str, Any] = field(default_factory=dict, compare=False)
+    columns: tuple[tuple[str, str], ...] = ()
+    geoid_m: float | None = None
+    line_type: str | None = None
+    exclude_line_type: str | None = None
+
+    def load_options(self) -> dict[str, Any]:
+        """The survey keys as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
+        out: dict[str, Any] = {}
+        if self.columns:
+            out["columns"] = dict(self.columns)
+        if self.geoid_m is not None:
+            out["geoid_undulation_m"] = self.geoid_m
+        if self.line_type is not None:
+            out["line_type"] = self.line_type
+        if self.exclude_line_type is not None:
+            out["exclude_line_type"] = self.exclude_line_type
+        return out
 
 
 @dataclass(frozen=True)
@@ -332,8 +375,12 @@ def _path(ctx: _Ctx, key: str, v: Any, base: Path, *, allow_spec: bool = True) -
 _TRAJ_KEYS = {
     "great_circle": ({"start", "end", "altitude_m", "speed_mps"}, set()),
     "waypoints": ({"points", "altitude_m", "speed_mps"}, set()),
-    "survey_line": ({"survey", "line", "speed_mps"}, set()),
+    "survey_line": ({"survey", "speed_mps"}, {"line", "line_type", "columns", "geoid_m"}),
     "file": ({"path"}, set()),
+    "lawnmower": (
+        {"start", "heading_deg", "leg_length_m", "leg_spacing_m", "legs", "altitude_m", "speed_mps"},
+        {"turn_rate_deg_s"},
+    ),
 }
 
 
@@ -362,14 +409,35 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
         kw["points_deg"] = tuple(_latlon(ctx, "trajectory.points", p) for p in pts)
     elif kind == "survey_line":
         kw["survey"] = _path(ctx, "trajectory.survey", t["survey"], base)
-        raw = t["line"]
-        ids = raw if isinstance(raw, list) else [raw]
-        if not ids:
-            raise ctx.error("trajectory.line", "expected a line id or a non-empty list of line ids, got []")
-        kw["lines"] = tuple(_int(ctx, "trajectory.line", x) for x in ids)
-        if len(set(kw["lines"])) != len(kw["lines"]):
-            raise ctx.error("trajectory.line", f"a line id appears twice in {list(kw['lines'])}")
-        kw["line"] = kw["lines"][0]
+        if "line" not in t and "line_type" not in t:
+            n = ctx.line_of("trajectory")
+            raise ConfigError(
+                f"{ctx.source or '<scenario>'}{f' line {n}' if n else ''}: [trajectory] kind = 'survey_line' needs "
+                "'line' (an id or a list of ids) or 'line_type' (e.g. \"TIE\": every line of that type)"
+            )
+        if "line" in t:
+            raw = t["line"]
+            ids = raw if isinstance(raw, list) else [raw]
+            if not ids:
+                raise ctx.error("trajectory.line", "expected a line id or a non-empty list of line ids, got []")
+            kw["lines"] = tuple(_int(ctx, "trajectory.line", x) for x in ids)
+            if len(set(kw["lines"])) != len(kw["lines"]):
+                raise ctx.error("trajectory.line", f"a line id appears twice in {list(kw['lines'])}")
+            kw["line"] = kw["lines"][0]
+        if "line_type" in t:
+            kw["line_type"] = _str(ctx, "trajectory.line_type", t["line_type"])
+        if "columns" in t:
+            kw["columns"] = _columns(ctx, "trajectory.columns", t["columns"])
+        if "geoid_m" in t:
+            kw["geoid_m"] = _number(ctx, "trajectory.geoid_m", t["geoid_m"])
+    elif kind == "lawnmower":
+        kw["start_deg"] = _latlon(ctx, "trajectory.start", t["start"])
+        kw["heading_deg"] = _number(ctx, "trajectory.heading_deg", t["heading_deg"])
+        kw["leg_length_m"] = _number(ctx, "trajectory.leg_length_m", t["leg_length_m"], positive=True)
+        kw["leg_spacing_m"] = _number(ctx, "trajectory.leg_spacing_m", t["leg_spacing_m"], positive=True)
+        kw["legs"] = _int(ctx, "trajectory.legs", t["legs"], minimum=1)
+        if "turn_rate_deg_s" in t:
+            kw["turn_rate_deg_s"] = _number(ctx, "trajectory.turn_rate_deg_s", t["turn_rate_deg_s"], positive=True)
     else:
         kw["path"] = _path(ctx, "trajectory.path", t["path"], base, allow_spec=False)
     return TrajectoryConfig(**kw)
@@ -396,8 +464,31 @@ def _init(ctx: _Ctx, t: dict[str, Any] | None) -> InitConfig:
     return InitConfig(pos, vel, att_t)  # type: ignore[arg-type]
 
 
+def _columns(ctx: _Ctx, key: str, v: Any) -> tuple[tuple[str, str], ...]:
+    """A survey column mapping table ``{our name = "file column", ...}`` (``maps.io.SURVEY_COLUMNS``)."""
+    from ..maps.io import SURVEY_COLUMNS
+
+    if not isinstance(v, dict) or not v:
+        raise ctx.error(key, f'expected a table like {{ height_ellipsoidal_m = "height_ell_m" }}, got {v!r}')
+    out = []
+    for ours, theirs in v.items():
+        if ours not in SURVEY_COLUMNS:
+            raise ctx.error(f"{key}.{ours}", f"not a survey column name; expected one of {', '.join(SURVEY_COLUMNS)}")
+        out.append((ours, _str(ctx, f"{key}.{ours}", theirs)))
+    return tuple(out)
+
+
+_MAP_SURVEY_KEYS = {"columns", "geoid_m", "line_type", "exclude_line_type"}
+
+
 def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
-    _check_keys(ctx, "map", t, {"path", "kind", "grid_spacing_m", "exclude_lines", "options"}, {"path", "kind"})
+    _check_keys(
+        ctx,
+        "map",
+        t,
+        {"path", "kind", "grid_spacing_m", "exclude_lines", "options"} | _MAP_SURVEY_KEYS,
+        {"path", "kind"},
+    )
     path = _path(ctx, "map.path", t["path"], base)
     kind_s = _str(ctx, "map.kind", t["kind"], tuple(k.value for k in FieldKind))
     spacing = None
@@ -410,7 +501,20 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     opts = t.get("options", {})
     if not isinstance(opts, dict):
         raise ctx.error("map.options", f"expected a table, got {opts!r}")
-    return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts))
+    kw: dict[str, Any] = {}
+    if "columns" in t:
+        kw["columns"] = _columns(ctx, "map.columns", t["columns"])
+    if "geoid_m" in t:
+        kw["geoid_m"] = _number(ctx, "map.geoid_m", t["geoid_m"])
+    for k in ("line_type", "exclude_line_type"):
+        if k in t:
+            kw[k] = _str(ctx, f"map.{k}", t[k])
+    from ..maps.io import SURVEY_SUFFIXES
+
+    if kw and not path.lower().endswith(SURVEY_SUFFIXES):
+        k = sorted(kw)[0]
+        raise ctx.error(f"map.{k}", "applies to a survey CSV map (gridded on load), not to a grid file")
+    return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), **kw)
 
 
 def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfig) -> SensorConfig:

@@ -18,9 +18,12 @@ EXTRA_STATE_OPTIONS = ("scale_factors", "scale_factor_tau_s", "map_bias_sigma_m"
 
 _CORE = ("cov_step_s", "buffer_s", "altitude_hold", "keep_history")
 
+#: fault detection, exclusion and protection level (:class:`integrity.FaultMonitor`)
+INTEGRITY_OPTIONS = ("reset_after", "fault_window", "fault_window_s", "fault_probability", "integrity_risk")
+
 #: the keyword options each fuser's constructor takes (tested against the constructors' signatures)
 FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
-    "ukf": ("gate_probability", *_CORE, "reset_after", "alpha", "beta", "kappa", *EXTRA_STATE_OPTIONS),
+    "ukf": ("gate_probability", *_CORE, *INTEGRITY_OPTIONS, "alpha", "beta", "kappa", *EXTRA_STATE_OPTIONS),
     "graph": (
         "gate_probability",
         "huber_k",
@@ -29,12 +32,12 @@ FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
         "relinearize_skip",
         "gravity_update_s",
         "integration_sigma",
-        "reset_after",
+        *INTEGRITY_OPTIONS,
         "max_preintegration_rad",
         "altitude_hold",
         "altitude_hold_sigma_m",
     ),
-    "free_inertial": ("gate_probability", *_CORE, *EXTRA_STATE_OPTIONS),
+    "free_inertial": ("gate_probability", *_CORE, "integrity_risk", *EXTRA_STATE_OPTIONS),
 }
 
 
@@ -80,6 +83,7 @@ __all__ = [
     "EXTRA_STATE_OPTIONS",
     "FUSER_KINDS",
     "FUSER_OPTIONS",
+    "INTEGRITY_OPTIONS",
     "ExtraStates",
     "ImuNoise",
     "LocalFrame",

@@ -13,7 +13,17 @@ from numpy.typing import ArrayLike, NDArray
 
 from ...core.errors import ConfigError, InputError
 from ...core.frames import C_en, geodetic_to_ned, latlon_to_meters, ned_to_geodetic, skew
-from ...core.types import LAYOUT_15, Fix, ImuBatch, Innovation, NavEstimate, NavState, NavTrajectory, StateLayout
+from ...core.types import (
+    DEFAULT_INTEGRITY_RISK,
+    LAYOUT_15,
+    Fix,
+    ImuBatch,
+    Innovation,
+    NavEstimate,
+    NavState,
+    NavTrajectory,
+    StateLayout,
+)
 from ...ins.earth import gravity_n
 
 FloatArray = NDArray[np.float64]
@@ -440,8 +450,10 @@ class InertialCore:
         map_bias_sigma_m: float | None = None,
         map_bias_tau_s: float | None = None,
         map_bias_sources: tuple[str, ...] | None = None,
+        integrity_risk: float = DEFAULT_INTEGRITY_RISK,
     ) -> None:
         from ...ins.strapdown import StrapdownStepper
+        from .integrity import FaultMonitor
 
         self.extra = ExtraStates.from_options(
             noise, scale_factors=scale_factors, scale_factor_tau_s=scale_factor_tau_s,
@@ -459,6 +471,8 @@ class InertialCore:
         if not (cov_step_s > 0 and buffer_s >= 0):
             raise InputError(f"cov_step_s must be > 0 and buffer_s >= 0, got {cov_step_s}, {buffer_s}")
         self.noise = noise
+        #: the protection level's monitor; without fixes (free inertial) the HPL is the covariance's alone
+        self.monitor = FaultMonitor(None, integrity_risk=integrity_risk)
         self.cov_step_s = float(cov_step_s)
         self.buffer_s = float(buffer_s)
         self._init_nav = init.nav
@@ -694,9 +708,11 @@ class InertialCore:
 
     def estimate(self) -> NavEstimate:
         """The current INS state and its error covariance (propagated up to now) in ``self.layout`` (LAYOUT_15
-        unless optional states were asked for)."""
+        unless optional states were asked for), with the horizontal protection level of :attr:`monitor`."""
         self._advance_cov()
-        return NavEstimate(self._stepper.nav, self._P.copy(), self.layout)
+        P = self._P.copy()
+        m = self.monitor
+        return NavEstimate(self._stepper.nav, P, self.layout, m.hpl(P[0:2, 0:2]), m.integrity_risk)
 
     @property
     def bias(self) -> tuple[FloatArray, FloatArray]:

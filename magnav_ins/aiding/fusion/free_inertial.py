@@ -29,3 +29,12 @@ class FreeInertial(InertialCore):
         inn = Innovation(float(fix.t), r, np.full((2, 2), np.nan), float("nan"), False, "free inertial", fix.source)
         self.innovations.append(inn)
         return inn
+
+    def correct_batch(self, fixes: list[Fix], cov) -> Innovation:  # noqa: ANN001, ARG002
+        """Apply nothing (the batch counterpart of :meth:`correct`)."""
+        import numpy as np
+
+        t = float(fixes[-1].t) if fixes else float("nan")
+        inn = Innovation(t, np.full(2, np.nan), np.full((2, 2), np.nan), float("nan"), False, "free inertial", "")
+        self.innovations.append(inn)
+        return inn

@@ -44,10 +44,27 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from ...core.errors import ConfigError, InputError
-from ...core.types import LAYOUT_15, Fix, ImuBatch, Innovation, NavEstimate, NavState, NavTrajectory
+from ...core.types import (
+    DEFAULT_INTEGRITY_RISK,
+    LAYOUT_15,
+    Fix,
+    ImuBatch,
+    Innovation,
+    NavEstimate,
+    NavState,
+    NavTrajectory,
+)
 from ...ins.earth import omega_ie_n
 from ..gating import ChiSquareGate, nis
 from .common import ImuNoise, LocalFrame, check_time, fix_problem, rejected, residual_ne, symmetrise
+from .integrity import (
+    DEFAULT_RESET_AFTER,
+    DEFAULT_WINDOW,
+    DEFAULT_WINDOW_PROBABILITY,
+    DEFAULT_WINDOW_S,
+    FaultMonitor,
+    Verdict,
+)
 
 FloatArray = np.ndarray
 _TIME_TOL = 1e-9
@@ -96,7 +113,11 @@ class GraphFuser:
         relinearize_skip: int = 1,
         gravity_update_s: float = 0.1,
         integration_sigma: float = 1e-4,
-        reset_after: int = 3,
+        reset_after: int = DEFAULT_RESET_AFTER,
+        fault_window: int = DEFAULT_WINDOW,
+        fault_window_s: float = DEFAULT_WINDOW_S,
+        fault_probability: float = DEFAULT_WINDOW_PROBABILITY,
+        integrity_risk: float = DEFAULT_INTEGRITY_RISK,
         max_preintegration_rad: float | None = None,
         altitude_hold: float | None = None,
         altitude_hold_sigma_m: float = 50.0,
@@ -110,7 +131,10 @@ class GraphFuser:
         self.gate = ChiSquareGate(gate_probability, 2)
         self.huber_k = float(huber_k)
         self.reset_after = int(reset_after)
-        self._n_rejected = 0
+        self.monitor = FaultMonitor(
+            gate_probability, window=fault_window, window_s=fault_window_s, window_probability=fault_probability,
+            reset_after=reset_after, integrity_risk=integrity_risk,
+        )  # fmt: skip
         self.vertical_sigma_m = float(vertical_sigma_m)
         self.gravity_update_s = float(gravity_update_s)
         if max_preintegration_rad is not None and not (0.0 < float(max_preintegration_rad) <= np.pi / 2):
@@ -321,8 +345,11 @@ class GraphFuser:
     def correct(self, fix: Fix, *, height_m: float | None = None, height_sigma_m: float | None = None) -> Innovation:
         """Add a node at ``fix.t`` with the IMU factor since the last node and, if the fix passes the NIS gate, a
         robust position factor; returns the innovation (rejected ones say why). Optional ``height_m`` (ellipsoidal,
-        m) with ``height_sigma_m`` constrains the vertical. After ``reset_after`` consecutive gate rejections the next fix is added anyway
-        (with its Huber kernel; ``extra["forced"]``), so that a graph that has lost track recovers."""
+        m) with ``height_sigma_m`` constrains the vertical. Fault detection, exclusion and recovery as in the UKF
+        (:class:`integrity.FaultMonitor`); a recovery (``extra["recovery"]``) gives the new node, instead of the IMU
+        factor from the last one, a prior at the IMU prediction with its navigation covariance inflated until the
+        fix sits on the gate (``extra["inflation"]``): the graph lets go of the track it lost, as the UKF widens its
+        covariance."""
         if height_m is None and self.altitude_hold is not None:  # the held height as a pseudo-measurement
             height_m, height_sigma_m = self.altitude_hold, self.altitude_hold_sigma_m
         problem = fix_problem(fix)
@@ -338,7 +365,6 @@ class GraphFuser:
                 inn = self._fix_at_keyframe(fix, height_m, height_sigma_m)
             else:
                 inn = self._add_node(float(fix.t), fix, height_m, height_sigma_m)
-            self._n_rejected = 0 if inn.accepted else self._n_rejected + 1
         self.innovations.append(inn)
         return inn
 
@@ -367,44 +393,89 @@ class GraphFuser:
         k0, k1 = self._k, self._k + 1
         pred = pim_a.predict(self._node.state, self._node.bias)
         g = gtsam.NonlinearFactorGraph()
-        g.add(gtsam.CombinedImuFactor(X(k0), V(k0), X(k1), V(k1), B(k0), B(k1), pim_a))
         vals = gtsam.Values()
         vals.insert(X(k1), pred.pose())
         vals.insert(V(k1), pred.velocity())
         vals.insert(B(k1), self._node.bias)
-        inn = None
+        inn = verdict = None
+        imu_factor = gtsam.CombinedImuFactor(X(k0), V(k0), X(k1), V(k1), B(k0), B(k1), pim_a)
         if fix is not None:
+            P_pred_g = self._predict_cov_g(pim_a, pred)
             Jp = self._J_gtsam_to_layout(pred)
-            P_pred = symmetrise(Jp @ self._predict_cov_g(pim_a, pred) @ Jp.T)
-            inn = self._fix_factor(g, k1, pred, P_pred, t_new, fix, height_m, height_sigma_m)
+            P_pred = symmetrise(Jp @ P_pred_g @ Jp.T)
+            verdict, r, S, v = self._assess(fix, pred, P_pred, t_new, k1)
+            if verdict.action == "recover" and v > self.gate.threshold:
+                # cut the track the graph lost: the new node's prior is the IMU prediction with its navigation part
+                # (rotation, translation, velocity in gtsam's order) inflated until the fix sits on the gate
+                forced = v / self.gate.threshold
+                Pg = P_pred_g.copy()
+                Pg[0:9, :] *= np.sqrt(forced)
+                Pg[:, 0:9] *= np.sqrt(forced)
+                g.add(self._joint_prior(k1, pred, self._node.bias, Pg))
+                P_pred = symmetrise(Jp @ Pg @ Jp.T)
+                r = residual_ne(fix, self._from_gtsam(t_new, pred))
+                S = P_pred[0:2, 0:2] + np.asarray(fix.cov_ne, float)
+                verdict = Verdict("recover", extra={**verdict.extra, "inflation": forced}, group=verdict.group)
+                v = nis(r, S)
+            else:
+                g.add(imu_factor)
+            inn = self._fix_innovation(g, k1, pred, t_new, fix, height_m, height_sigma_m, verdict, r, S, v)
+        else:
+            g.add(imu_factor)
         self._update(g, vals)
         self._k = k1
         self._node_times.append(t_new)
         self._keyframe = fix is None
         self._refresh(rest, accepted=inn is not None and inn.accepted)
+        if inn is not None and inn.accepted:
+            self.monitor.accepted(
+                t_new, v, P_pred[0:2, 0:2], self._P_node[0:2, 0:2], recovery=verdict.action == "recover"
+            )
         return inn
 
-    def _fix_factor(
+    def _joint_prior(self, k: int, state: gtsam.NavState, bias: gtsam.imuBias.ConstantBias, P_g: FloatArray):
+        """A joint Gaussian prior on ``(X_k, V_k, B_k)`` with covariance ``P_g`` (gtsam order) at ``state, bias``:
+        the whitened linear factor ``||U dx||^2``, ``U^T U = P_g^-1``, held at those values."""
+        values = gtsam.Values()
+        values.insert(X(k), state.pose())
+        values.insert(V(k), state.velocity())
+        values.insert(B(k), bias)
+        U = np.linalg.cholesky(np.linalg.inv(symmetrise(P_g, 1e-14))).T
+        lin = gtsam.JacobianFactor(X(k), U[:, 0:6], V(k), U[:, 6:9], B(k), U[:, 9:15], np.zeros(15),
+                                   gtsam.noiseModel.Unit.Create(15))  # fmt: skip
+        return gtsam.LinearContainerFactor(lin, values)
+
+    def _assess(
+        self, fix: Fix, pred: gtsam.NavState, P_pred: FloatArray, t: float, k: int
+    ) -> tuple[Verdict, FloatArray, FloatArray, float]:
+        """The fault monitor's verdict on ``fix`` against the node ``k`` prediction ``pred`` (LAYOUT_15 covariance
+        ``P_pred``) and the residual, innovation covariance and 2-dof NIS it rests on."""
+        r = residual_ne(fix, self._from_gtsam(t, pred))
+        cov_fix = np.asarray(fix.cov_ne, float)
+        S = P_pred[0:2, 0:2] + cov_fix
+        v = nis(r, S)
+        return self.monitor.assess(t, r, S, cov_fix, P_pred[0:2, 0:2], tag=k), r, S, v
+
+    def _fix_innovation(
         self,
         g: gtsam.NonlinearFactorGraph,
         k: int,
         pred: gtsam.NavState,
-        P_pred: FloatArray,
         t: float,
         fix: Fix,
         height_m: float | None,
         height_sigma_m: float | None,
+        verdict: Verdict,
+        r: FloatArray,
+        S: FloatArray,
+        v: float,
     ) -> Innovation:
-        """Gate ``fix`` against the node ``k`` prediction ``pred`` (LAYOUT_15 covariance ``P_pred``) and, if it
-        passes (or is forced), add its robust position factor to ``g``; returns the innovation."""
+        """Add the robust position factor of an accepted (or recovering) ``fix`` on node ``k`` to ``g``; the
+        :class:`Innovation` either way (an excluded fix says which test excluded it)."""
+        if verdict.action == "reject":
+            return Innovation(float(fix.t), r, S, v, False, verdict.reason, fix.source, verdict.extra)
         nav_pred = self._from_gtsam(t, pred)
-        r = residual_ne(fix, nav_pred)
         cov_fix = np.asarray(fix.cov_ne, float)
-        S = P_pred[0:2, 0:2] + cov_fix
-        v = nis(r, S)
-        forced = 0 < self.reset_after <= self._n_rejected and np.isfinite(v)
-        if not (self.gate.accepts(v) or forced):
-            return rejected(fix, f"NIS {v:.1f} above gate {self.gate.threshold:.1f}", r, S, v)
         C_nL = self.frame.C_nL(nav_pred.lat, nav_pred.lon)
         h = float(height_m) if height_m is not None else nav_pred.h
         sv = float(height_sigma_m) if height_sigma_m is not None else self.vertical_sigma_m
@@ -415,8 +486,7 @@ class GraphFuser:
         gauss = gtsam.noiseModel.Gaussian.Covariance(C_nL.T @ cov_n @ C_nL)
         model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_k), gauss)
         g.add(gtsam.GPSFactor(X(k), np.asarray(r_L, float), model))
-        extra = {} if self.gate.accepts(v) else {"forced": 1.0}
-        return Innovation(float(fix.t), r, S, v, True, "", fix.source, extra)
+        return Innovation(float(fix.t), r, S, v, True, "", fix.source, dict(verdict.extra))
 
     def _refresh(self, rest: list[tuple[float, float, np.ndarray, np.ndarray]], accepted: bool) -> None:
         """After an update: read the last node from iSAM2 and re-integrate the samples ``rest`` after it."""
@@ -441,12 +511,18 @@ class GraphFuser:
     def _fix_at_keyframe(self, fix: Fix, height_m: float | None, height_sigma_m: float | None) -> Innovation:
         """A fix stamped at the last node when that node is a keyframe (no fix yet): its factor goes on that node."""
         g = gtsam.NonlinearFactorGraph()
-        inn = self._fix_factor(g, self._k, self._node.state, self._P_node, self._node.t, fix, height_m, height_sigma_m)
+        P_prior = self._P_node
+        verdict, r, S, v = self._assess(fix, self._node.state, P_prior, self._node.t, self._k)
+        # a recovery here is applied as an acceptance (the node already hangs on its IMU factor)
+        inn = self._fix_innovation(g, self._k, self._node.state, self._node.t, fix, height_m, height_sigma_m,
+                                   verdict, r, S, v)  # fmt: skip
         if inn.accepted:
             self._update(g, gtsam.Values())
             self._keyframe = False
             rest = list(zip(self._buf_t, self._buf_dt, self._buf_w, self._buf_f, strict=True))
             self._refresh(rest, accepted=True)
+            self.monitor.accepted(self._node.t, v, P_prior[0:2, 0:2], self._P_node[0:2, 0:2],
+                                  recovery=verdict.action == "recover")  # fmt: skip
         return inn
 
     def estimate(self) -> NavEstimate:
@@ -459,7 +535,8 @@ class GraphFuser:
             if self._pred_cov_cache is None or self._pred_cov_cache[0] != self._t:
                 self._pred_cov_cache = (self._t, self._predicted_covariance(pred))
             P = self._pred_cov_cache[1]
-        return NavEstimate(nav, P, LAYOUT_15)
+        m = self.monitor
+        return NavEstimate(nav, P, LAYOUT_15, m.hpl(P[0:2, 0:2]), m.integrity_risk)
 
     def _predicted_covariance(self, pred: gtsam.NavState) -> FloatArray:
         J = self._J_gtsam_to_layout(pred)

@@ -18,11 +18,16 @@ correction as the biases are) and/or a north/east map-registration bias ``db_map
 Gauss-Markov with ``map_bias_tau_s``). The reported innovation is then ``z`` after the map-bias estimate is taken
 off. Without them the filter is the 15-state one above, number for number.
 
-Gating: NIS ``y^T S^-1 y`` against the ``gate_probability`` chi-square quantile (2 dof, 3 with height); a rejected
-fix leaves the filter untouched and its :class:`Innovation` says why. After ``reset_after`` consecutive gate
-rejections the next fix is applied with the navigation covariance inflated so that it sits on the gate (recorded as
-``extra["inflation"]``): a filter that has lost track recovers instead of rejecting every later fix. Covariance: symmetrised, eigenvalues floored at
-0 after each step, tiny jitter before the sigma-point Cholesky. Closed loop: after an accepted update the estimated
+Fault detection and exclusion (:class:`integrity.FaultMonitor`): the single-fix gate (NIS ``y^T S^-1 y`` against
+the ``gate_probability`` chi-square quantile, 2 dof, 3 with a height), a window test on the sum of the last
+``fault_window`` accepted fixes' NIS (within ``fault_window_s``, at ``fault_probability``), and a recovery: when at
+least ``reset_after`` excluded fixes (this one included) are mutually consistent, the filter has lost track and the
+fix is applied with the navigation covariance inflated so that it sits on the gate (``extra["inflation"]``,
+``extra["recovery"]``); faults that do not agree with each other are never re-accepted. An excluded fix leaves the
+filter untouched and its :class:`Innovation` says which test excluded it. :meth:`estimate` carries the horizontal
+protection level ``hpl_m`` at ``integrity_risk`` (covariance, fault-detection margin and the doubt of unresolved
+exclusions; :mod:`.integrity`). Covariance: symmetrised, eigenvalues floored at 0 after each step, tiny jitter before
+the sigma-point Cholesky (:func:`psd_sqrt`: states known exactly, zero variance, keep zero spread). Closed loop: after an accepted update the estimated
 errors are fed back (``C_nb <- exp(-[psi x]) C_nb``, position/velocity minus their errors, biases ``b <- b - db``)
 and the error state is reset to zero (the covariance is kept; the reset Jacobian is I to first order, Groves
 sec. 14.2.7).
@@ -44,12 +49,36 @@ Sigma points: ``alpha = 1, beta = 2, kappa = 0`` by default (lambda = 0, no nega
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
-from ...core.types import Fix, Innovation, NavEstimate
+from ...core.types import DEFAULT_INTEGRITY_RISK, Fix, Innovation, NavEstimate
 from ...ins.error_model import apply_error
 from ..gating import ChiSquareGate, nis
 from .common import ExtraStates, ImuNoise, InertialCore, fix_problem, rejected, residual_ne, symmetrise
+from .integrity import (
+    DEFAULT_RESET_AFTER,
+    DEFAULT_WINDOW,
+    DEFAULT_WINDOW_PROBABILITY,
+    DEFAULT_WINDOW_S,
+    FaultMonitor,
+)
+
+
+def psd_sqrt(A: np.ndarray) -> np.ndarray:
+    """Upper-triangular ``U`` with ``U^T U = A`` for the sigma points (filterpy's ``sqrt_method``), ``A`` a
+    covariance whose exactly known states have zero variance: the Cholesky factor of the block of states with a
+    positive variance and zero rows for the others, whose sigma points then do not spread (for a PSD matrix their
+    cross-covariances are zero too). A clamped vertical channel starts and stays at zero variance (the bridge and
+    the replay build such a prior); filterpy's default (a plain Cholesky) needs ``A`` positive definite and failed
+    on it ("6-th leading minor not positive definite", issue 18)."""
+    live = np.diag(A) > 0.0
+    if live.all():
+        return scipy.linalg.cholesky(A)
+    idx = np.flatnonzero(live)
+    U = np.zeros_like(A)
+    U[np.ix_(idx, idx)] = scipy.linalg.cholesky(A[np.ix_(idx, idx)])
+    return U
 
 
 def _fx(x: np.ndarray, dt: float, Phi: np.ndarray) -> np.ndarray:  # noqa: ARG001 (filterpy's signature)
@@ -70,7 +99,9 @@ class UkfFuser(InertialCore):
     ``noise``: IMU noise; ``gate_probability``: chi-square gate (None: no gate, e.g. for trusted GNSS fixes); ``cov_step_s``: longest covariance step (s);
     ``buffer_s``: how far back a late fix may be applied (s); ``altitude_hold``: clamp the INS height (m);
     ``keep_history``: record every covariance step, IMU sample and accepted fix for :meth:`smooth` (RTS smoother,
-    offline; ``smooth(iterations)``); ``scale_factors``, ``scale_factor_tau_s`` (s), ``map_bias_sigma_m`` (m),
+    offline; ``smooth(iterations)``); ``reset_after``, ``fault_window``, ``fault_window_s`` (s),
+    ``fault_probability``, ``integrity_risk``: fault detection and protection level (:class:`integrity.FaultMonitor`);
+    ``scale_factors``, ``scale_factor_tau_s`` (s), ``map_bias_sigma_m`` (m),
     ``map_bias_tau_s`` (s), ``map_bias_sources``: optional states (module docstring, :class:`common.ExtraStates`)."""
 
     name = "ukf"
@@ -84,7 +115,11 @@ class UkfFuser(InertialCore):
         cov_step_s: float = 1.0,
         buffer_s: float = 120.0,
         altitude_hold: float | None = None,
-        reset_after: int = 3,
+        reset_after: int = DEFAULT_RESET_AFTER,
+        fault_window: int = DEFAULT_WINDOW,
+        fault_window_s: float = DEFAULT_WINDOW_S,
+        fault_probability: float = DEFAULT_WINDOW_PROBABILITY,
+        integrity_risk: float = DEFAULT_INTEGRITY_RISK,
         keep_history: bool = False,
         alpha: float = 1.0,
         beta: float = 2.0,
@@ -100,16 +135,16 @@ class UkfFuser(InertialCore):
             map_bias_sigma_m=map_bias_sigma_m, map_bias_tau_s=map_bias_tau_s, map_bias_sources=map_bias_sources,
         )  # fmt: skip
         n = self._n = self.extra.layout.size
-        self._points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+        self._points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa, sqrt_method=psd_sqrt)
         self._ukf = UnscentedKalmanFilter(dim_x=n, dim_z=2, dt=1.0, hx=_hx_ne, fx=_fx, points=self._points)
         self.gate_probability = None if gate_probability is None else float(gate_probability)
         self.gate = ChiSquareGate(self.gate_probability, 2)
         self.reset_after = int(reset_after)
-        self._n_rejected = 0  # consecutive gate rejections
         self.innovations: list[Innovation] = []
         super().__init__(
             init,
             noise,
+            integrity_risk=integrity_risk,
             cov_step_s=cov_step_s,
             buffer_s=buffer_s,
             altitude_hold=altitude_hold,
@@ -120,12 +155,18 @@ class UkfFuser(InertialCore):
             map_bias_tau_s=map_bias_tau_s,
             map_bias_sources=map_bias_sources,
         )
+        self.monitor = FaultMonitor(
+            self.gate_probability, window=fault_window, window_s=fault_window_s, window_probability=fault_probability,
+            reset_after=reset_after, integrity_risk=integrity_risk,
+        )  # fmt: skip
 
     def _jitter(self, P: np.ndarray) -> np.ndarray:
         # relative jitter per state: a floor scaled by the trace (dominated by the position, m^2) would lift the
-        # precision gyro-bias variance (~1e-17 rad^2/s^2) by eight orders of magnitude
+        # precision gyro-bias variance (~1e-17 rad^2/s^2) by eight orders of magnitude; states with zero variance
+        # (known exactly, e.g. a clamped height) stay at zero (psd_sqrt leaves them out of the Cholesky factor)
         P = symmetrise(P, 0.0)
-        return P + np.diag(1e-12 * np.maximum(np.diag(P), 1e-300))
+        d = np.diag(P)
+        return P + np.diag(np.where(d > 0.0, 1e-12 * d, 0.0))
 
     def _predict_cov(self, Phi: np.ndarray, Qd: np.ndarray) -> None:
         """Unscented prediction of the (zero) error state through ``x <- Phi x`` with noise ``Qd``."""
@@ -140,10 +181,6 @@ class UkfFuser(InertialCore):
         """Apply a position fix (north/east; with ``height_m``, ellipsoidal m, and ``height_sigma_m`` also the
         vertical) at ``fix.t``; returns the innovation (rejected ones say why)."""
         inn = self._correct(fix, height_m, height_sigma_m)
-        if inn.reason.startswith("NIS"):
-            self._n_rejected += 1
-        elif inn.accepted:
-            self._n_rejected = 0
         self.innovations.append(inn)
         return inn
 
@@ -201,9 +238,10 @@ class UkfFuser(InertialCore):
         S_ne = S[:2, :2]
         v_ne = nis(y[:2], S_ne)  # reported: the north/east NIS (2 dof), comparable across fusers
         forced = 0.0
-        if not gate.accepts(v) and 0 < self.reset_after <= self._n_rejected and np.isfinite(v):
-            # recovery: after `reset_after` consecutive rejections the filter, not the fixes, is taken to be wrong;
-            # inflate the navigation covariance until this fix sits on the gate, then apply it
+        verdict = self.monitor.assess(fix.t, y[:2], S_ne, R, self._P[0:2, 0:2].copy(), nis_gate=v, dof=dim)
+        if verdict.action == "recover" and np.isfinite(v) and v > gate.threshold:
+            # recovery: mutually consistent excluded fixes say the filter, not the fixes, is wrong; inflate the
+            # navigation covariance until this fix sits on the gate, then apply it
             forced = v / gate.threshold
             k = slice(0, 9)
             self._P[k, :] *= np.sqrt(forced)
@@ -218,13 +256,17 @@ class UkfFuser(InertialCore):
             y = z - zp
             v = nis(y, S)
             S_ne = S[:2, :2]
-        elif not gate.accepts(v):
+        elif verdict.action == "reject":
             self._replay(rest)
-            return rejected(fix, f"NIS {v:.1f} above gate {gate.threshold:.1f} ({dim} dof)", y[:2], S_ne, v_ne)
+            return Innovation(float(fix.t), y[:2], S_ne, v_ne, False, verdict.reason, fix.source, verdict.extra)
+        P_prior_ne = self._P[0:2, 0:2].copy()
         u._dim_z = dim
         u.update(z, R=Rz, hx=hx)
         dx = np.asarray(u.x, float)
         self._P = symmetrise(u.P, 0.0)
+        self.monitor.accepted(
+            fix.t, nis(y[:2], S_ne), P_prior_ne, self._P[0:2, 0:2], recovery=verdict.action == "recover"
+        )
         # closed-loop feedback, then reset the error state
         corrected = apply_error(nav, -dx[:9])
         self._stepper.reset(corrected)
@@ -236,8 +278,22 @@ class UkfFuser(InertialCore):
         self._checkpoints.pop()
         self._checkpoint()
         self._replay(rest)
-        extra = {"nis_full": v, "nis_dof": float(dim)}
+        extra = {"nis_full": v, "nis_dof": float(dim), **verdict.extra}
         if forced:
             extra["inflation"] = forced
             v_ne = nis(y[:2], S_ne)
         return Innovation(float(fix.t), y[:2], S_ne, v_ne, True, "", fix.source, extra)
+
+    def correct_batch(self, fixes: list[Fix], cov: np.ndarray) -> Innovation:
+        """Fuse a batch of correlated fixes (time order) with their joint covariance ``cov`` (2J, 2J) m^2 as one
+        stacked measurement (:mod:`.batch`: stochastic cloning over the replay buffer, which must cover the
+        batch); gated at ``gate_probability`` with 2J dof. Returns one innovation at the last fix time."""
+        from .batch import correct_batch
+
+        inn = correct_batch(self, fixes, cov, self.gate_probability)
+        if inn.reason.startswith("NIS"):
+            self._n_rejected += 1
+        elif inn.accepted:
+            self._n_rejected = 0
+        self.innovations.append(inn)
+        return inn

@@ -55,6 +55,7 @@ reason "diverged"; the mean NIS is the fix ``score``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numba as nb
 import numpy as np
@@ -63,6 +64,8 @@ from numpy.typing import NDArray
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
+from ...maps.variability import feature_variability_track
+from ._batch import adds_information, information_refusal, reading_variance
 from ._local import WorkFrame, make_frame, map_components, sigma_window, spacing_of, window_axes
 
 FloatArray = NDArray[np.float64]
@@ -316,6 +319,50 @@ def _loewner_max(A: FloatArray, B: FloatArray, big: float, information: bool = F
     return 0.5 * (out + out.T)
 
 
+def _smoothed_joint(
+    zbar: FloatArray, Rbar: FloatArray, F: FloatArray, Q: FloatArray, u: FloatArray, x0: FloatArray, P0: FloatArray
+) -> FloatArray:
+    """Joint covariance (2T, 2T) of the smoothed positions of the batch (north/east of each scan, scan order) for the
+    final pseudo-measurements ``zbar`` / ``Rbar`` of the EM: the forward Kalman filter and RTS smoother of eq. 12-13
+    with the cross-covariances ``P_{t,s|T} = G_t P_{t+1,s|T}`` (s > t; Rauch, Tung & Striebel 1965). The EM's
+    returned smoothed states are those of this very pass, so the marginals agree with ``PMHTResult.P``."""
+    T = zbar.shape[0]
+    d = x0.shape[0]
+    xf = np.zeros((T, d))
+    Pf = np.zeros((T, d, d))
+    Pp = np.zeros((T, d, d))
+    H = np.zeros((2, d))
+    H[0, 0] = H[1, 1] = 1.0
+    for t in range(T):
+        if t == 0:
+            xp, Pp[0] = x0, P0
+        else:
+            xp = F[t - 1] @ xf[t - 1] + u[t - 1]
+            Pp[t] = F[t - 1] @ Pf[t - 1] @ F[t - 1].T + Q[t - 1]
+        if np.isfinite(zbar[t, 0]):
+            S = H @ Pp[t] @ H.T + Rbar[t]
+            K = Pp[t] @ H.T @ np.linalg.inv(S)
+            xf[t] = xp + K @ (zbar[t] - H @ xp)
+            Pf[t] = Pp[t] - K @ H @ Pp[t]
+            Pf[t] = 0.5 * (Pf[t] + Pf[t].T)
+        else:
+            xf[t], Pf[t] = xp, Pp[t]
+    Ps = np.zeros((T, d, d))
+    Ps[T - 1] = Pf[T - 1]
+    G = np.zeros((T, d, d))
+    for t in range(T - 2, -1, -1):
+        G[t] = Pf[t] @ F[t].T @ np.linalg.inv(Pp[t + 1])
+        Ps[t] = Pf[t] + G[t] @ (Ps[t + 1] - Pp[t + 1]) @ G[t].T
+    full = np.zeros((T, T, d, d))
+    for s_ in range(T):
+        full[s_, s_] = Ps[s_]
+        for t in range(s_ - 1, -1, -1):
+            full[t, s_] = G[t] @ full[t + 1, s_]
+            full[s_, t] = full[t, s_].T
+    pos = full[:, :, :2, :2].transpose(0, 2, 1, 3).reshape(2 * T, 2 * T)
+    return 0.5 * (pos + pos.T)
+
+
 # ---------------------------------------------------------------------------------------------- matcher
 @dataclass
 class PMHTResult:
@@ -339,6 +386,8 @@ class PMHTResult:
     profile_chi2: float
     fisher: FloatArray
     ambiguity: tuple[FloatArray, FloatArray, FloatArray] | None = None
+    cov_prior: FloatArray | None = None
+    joint: FloatArray | None = None
 
 
 @dataclass
@@ -366,9 +415,12 @@ class PMHTMatcher:
     velocity_sigma: float = 0.5
     use_prior: bool = False
     pda_spread: bool = True
-    map_sigma: float = 0.0
+    map_sigma: float | None = None
+    correlation_m: float | None = None
     min_variability: float = 1.0
     variability_ref: float = 0.0
+    variability_window_m: float | None = None
+    reading_weight: bool = True
     max_nis: float = 20.0
     max_profile_chi2: float = 9.0
     mode: str = "standard"
@@ -384,7 +436,29 @@ class PMHTMatcher:
     ambiguity_deprior: bool = False
     adaptive_drift: bool = True
     max_scan_nodes: int = 4096
+    preset: str = ""
     name: str = "pmht"
+
+    #: named sets of defaults (``build_matcher({"kind": "pmht", "preset": "wang", ...})``; explicit keys win):
+    #: ``wang`` is PMHT-MM as Wang et al. (2022) publish it (module docstring, "The wang preset")
+    PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
+        "wang": {
+            "kinematics": "cv",
+            "use_prior": True,
+            "pda_spread": False,
+            "detection_prob": 1.0,
+            "reading_weight": False,
+            "value_gate": None,
+            "variance_factor": False,
+            "crlb_floor": False,
+            "ambiguity_floor": False,
+            "variability_window_m": 5000.0,
+            "min_variability": 0.25,
+            "variability_ref": 1.0,
+            "max_profile_chi2": float("inf"),
+            "max_nis": float("inf"),
+        }
+    }
 
     def __post_init__(self) -> None:
         for key in ("batch", "candidates", "iterations"):
@@ -395,6 +469,10 @@ class PMHTMatcher:
             raise ConfigError(f"pmht 'batch': expected T >= 2 scans, got {self.batch}")
         if self.kinematics not in ("cv", "ins"):
             raise ConfigError(f"pmht 'kinematics': expected 'cv' or 'ins', got {self.kinematics!r}")
+        if self.preset and self.preset not in self.PRESETS:
+            raise ConfigError(f"pmht 'preset': expected one of {sorted(self.PRESETS)}, got {self.preset!r}")
+        if self.variability_window_m is not None and not self.variability_window_m > 0:
+            raise ConfigError(f"pmht 'variability_window_m': expected > 0 m, got {self.variability_window_m!r}")
         if self.mode not in ("standard", "retrodiction"):
             raise ConfigError(f"pmht 'mode': expected 'standard' or 'retrodiction', got {self.mode!r}")
         for key in ("gate_sigma", "accel_sigma", "ins_drift_sigma", "velocity_sigma", "max_nis"):
@@ -486,7 +564,8 @@ class PMHTMatcher:
         dn, de = frame.to_ne(lat, lon)
         x_ins = np.column_stack([dn, de])
         cov = np.asarray(window.cov_ne, float)[sl]
-        s2 = float(rd.sigma) ** 2 + self.map_sigma**2
+        s2_t, _ = reading_variance(fmap, lat, lon, x_ins, float(rd.sigma), self.map_sigma, self.correlation_m)
+        s2 = float(np.mean(s2_t))  # sensor + map error (map_error via _batch.reading_variance)
         half = np.array([sigma_window(c, self.gate_sigma, self.window_floor_m) for c in cov])
         if not np.all(np.isfinite(half)):
             return "prior covariance not finite"
@@ -499,7 +578,12 @@ class PMHTMatcher:
         counts = np.where(good, counts, 0)
         if np.sum(counts > 0) < 2:
             return "off the map: fewer than 2 scans with map candidates in their windows"
-        variability = float(np.mean(var[counts > 0]))
+        if self.variability_window_m is not None:  # Wang's fixed search-window template about each scan (eq. 14)
+            w_m = float(self.variability_window_m)
+            cv = feature_variability_track(fmap, lat[good], lon[good], w_m, step_m=w_m / 20.0)
+            variability = float(np.nanmean(cv)) if np.any(np.isfinite(cv)) else 0.0
+        else:
+            variability = float(np.mean(var[counts > 0]))
         if variability < self.min_variability**2 * s2:
             return (
                 f"flat map: feature variability {np.sqrt(variability):.3g} below {self.min_variability:g} x "
@@ -508,6 +592,8 @@ class PMHTMatcher:
         hmax2 = np.max(half, axis=1) ** 2
         r2 = (self.candidate_floor_m or 0.5 * step) ** 2 + np.minimum(s2 / np.maximum(grad2, 1e-300), hmax2[:, None])
         logv = -0.5 * np.where(np.isfinite(dist), dist, 0.0) / s2
+        if not self.reading_weight:  # Wang's eq. 3: the candidates weighted by their distance to the prior only
+            logv = np.zeros_like(logv)
         pd = self.detection_prob
         logb = np.log((1.0 - pd) / pd) - np.log(4.0 * half[:, 0] * half[:, 1]) if pd < 1.0 else np.full(T, -np.inf)
         v_ne = np.asarray(window.v_ne, float)[sl]
@@ -577,11 +663,13 @@ class PMHTMatcher:
         ge_ = (frame.sample(X[:, 0], X[:, 1] + hstep) - frame.sample(X[:, 0], X[:, 1] - hstep)).reshape(T, -1)
         G = np.stack([gn_, ge_], axis=-1) / (2 * hstep)  # (T, c, 2)
         G = G[good & np.all(np.isfinite(G), axis=(1, 2))]
-        J = np.einsum("tci,tcj->ij", G, G) / (float(rd.sigma) ** 2 + self.map_sigma**2)
+        J = np.einsum("tci,tcj->ij", G, G) / s2
         amb = self._ambiguity(frame, z, good, x_ins, half, X, g2, s2, rel_drift) if self.ambiguity_floor else None
+        joint = _smoothed_joint(zbar, Rbar, F, Q, u, X0[0].copy(), P0)
         return PMHTResult(
-            X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J, amb
-        )
+            X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J, amb,
+            cov, joint,
+        )  # fmt: skip
 
     def _ambiguity(
         self,
@@ -682,17 +770,18 @@ class PMHTMatcher:
         ev, V = np.linalg.eigh(0.5 * (cov + cov.T))
         ev = np.minimum(ev, big)
         cov = (V * ev) @ V.T
-        sig = float(np.sqrt(ev[0] if self.partial_fixes else ev[-1]))
-        if sig > float(np.max(res.half[k])):
+        if self.variability_ref > 0:  # eq. 14 weighting: inflate where C / s^2 is below the reference
+            cov = cov * max(1.0, self.variability_ref / max(res.variability / res.sigma2, 1e-300))
+        if res.cov_prior is not None and not adds_information(cov, res.cov_prior[k]):
+            return information_refusal(t, cov, res.cov_prior[k], self.name, res.nis)
+        sig = float(np.sqrt(ev[-1]))
+        if not self.partial_fixes and sig > float(np.max(res.half[k])):
             return Fix.no_fix(
                 t,
-                f"flat map: fix sigma {sig:.3g} m exceeds the gate half-width {float(np.max(res.half[k])):.3g} m"
-                + (" in every direction" if self.partial_fixes else ""),
+                f"flat map: fix sigma {sig:.3g} m exceeds the gate half-width {float(np.max(res.half[k])):.3g} m",
                 self.name,
                 res.nis,
             )
-        if self.variability_ref > 0:  # eq. 14 weighting: inflate where C / s^2 is below the reference
-            cov = cov * max(1.0, self.variability_ref / max(res.variability / res.sigma2, 1e-300))
         lat, lon = res.frame.to_latlon(xk[0], xk[1])
         return Fix(t, float(lat), float(lon), cov, True, "", res.nis, self.name)
 
@@ -703,6 +792,43 @@ class PMHTMatcher:
         if isinstance(res, str):
             return Fix.no_fix(t, res, self.name)
         return self._fix(res, len(res.t) - 1)
+
+    def match_batch(self, window: MatchWindow, fmap: FieldMap) -> tuple[list[Fix], FloatArray]:
+        """Retrodiction mode for fusing (Wang sec. 3.3): a fix per scan of the batch (as :meth:`match_all`) and the
+        joint covariance (2J, 2J) m^2 of the J available ones (north/east per fix, in time order), so that the
+        fuser can take the batch as one correlated measurement (``Fuser.correct_batch``).
+
+        The joint is the EM's smoothed joint covariance (:func:`_smoothed_joint`) carried onto the fixes' own
+        covariances by a congruence: with ``L_k`` the Cholesky factor of the smoother's marginal at scan k and ``M_k``
+        that of the fix covariance, the blocks become ``M_k L_k^-1 P_{k,l} L_l^-T M_l^T``. The marginals are then
+        exactly the fixes' covariances (with their floors and eq. 14 weighting) and the scans keep the smoother's
+        correlation (nearly one: the batch is a rigid track)."""
+        res = self._run_safe(window, fmap)
+        if isinstance(res, str):
+            T = min(self.batch, len(window.readings))
+            return [Fix.no_fix(float(t), res, self.name) for t in window.readings.t[len(window.readings) - T :]], (
+                np.zeros((0, 0))
+            )
+        fixes = [self._fix(res, k) for k in range(len(res.t))]
+        ok = [k for k, f in enumerate(fixes) if f.available]
+        if not ok:
+            return fixes, np.zeros((0, 0))
+        joint = res.joint
+        blocks = []
+        for k in ok:
+            Pk = joint[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
+            Lk = np.linalg.cholesky(0.5 * (Pk + Pk.T) + 1e-9 * np.eye(2) * max(float(np.trace(Pk)), 1e-12))
+            Mk = np.linalg.cholesky(0.5 * (fixes[k].cov_ne + fixes[k].cov_ne.T))
+            blocks.append(Mk @ np.linalg.inv(Lk))
+        A = np.zeros((2 * len(ok), 2 * len(ok)))
+        for i, k in enumerate(ok):
+            for j, m in enumerate(ok):
+                A[2 * i : 2 * i + 2, 2 * j : 2 * j + 2] = joint[2 * k : 2 * k + 2, 2 * m : 2 * m + 2]
+        B = np.zeros_like(A)
+        for i in range(len(ok)):
+            B[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = blocks[i]
+        C = B @ A @ B.T
+        return fixes, 0.5 * (C + C.T)
 
     def match_all(self, window: MatchWindow, fmap: FieldMap) -> list[Fix]:
         """Retrodiction mode: a fix per scan of the batch (smoothed states and covariances)."""

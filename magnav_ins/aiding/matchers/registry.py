@@ -14,7 +14,13 @@ kind               class                                                        
 ``bayes_grid``     :class:`~.bayes_grid.BayesGridMatcher`                        recursive
 ``particle``       :class:`~.particle.ParticleFilter` (MagNavigate dynamics)     recursive
 ``particle_ins``   :class:`~.particle.ParticleFilter` (``dynamics="ins"``)       recursive
+``tercom``         :class:`~.tercom.TercomMatcher` (Golden 1980)                 batch
+``iccp``           :class:`~.iccp.ICCPMatcher` (Besl & McKay 1992)               batch
+``pmf``            :class:`~.pmf.PointMassFilter` (Bergman et al. 1999)          recursive
 =================  ==========================================================  ========
+
+``preset`` (where a class has ``PRESETS``) fills in a named set of defaults under the given keys, e.g.
+``{"kind": "pmht", "preset": "wang", "batch": 15}`` is PMHT-MM as Wang et al. publish it with T = 15.
 
 A particle filter's ``fix_matcher`` may itself be a config dict; its ``road`` map is passed as an object
 (``build_matcher(cfg, road=track_map)``), never in the dict.
@@ -28,9 +34,12 @@ from typing import Any
 
 from ...core.errors import ConfigError
 from .bayes_grid import BayesGridMatcher
+from .iccp import ICCPMatcher
 from .likelihood import LikelihoodMatcher
 from .particle import ParticleFilter
+from .pmf import PointMassFilter
 from .pmht import PMHTMatcher
+from .tercom import TercomMatcher
 
 #: kind -> (class, fixed parameters the kind implies)
 KINDS: dict[str, tuple[type, dict[str, Any]]] = {
@@ -41,10 +50,13 @@ KINDS: dict[str, tuple[type, dict[str, Any]]] = {
     "bayes_grid": (BayesGridMatcher, {}),
     "particle": (ParticleFilter, {"dynamics": "gauss_markov"}),
     "particle_ins": (ParticleFilter, {"dynamics": "ins"}),
+    "tercom": (TercomMatcher, {}),
+    "iccp": (ICCPMatcher, {}),
+    "pmf": (PointMassFilter, {}),
 }
 
 #: kinds implementing ``RecursiveMatcher`` (initiate / predict / update / to_fix) rather than ``match``.
-RECURSIVE_KINDS = frozenset({"bayes_grid", "particle", "particle_ins"})
+RECURSIVE_KINDS = frozenset({"bayes_grid", "particle", "particle_ins", "pmf"})
 
 _OBJECT_KEYS = {"road"}
 
@@ -85,6 +97,18 @@ def _check_type(kind: str, key: str, default: Any, value: Any) -> Any:
     return value
 
 
+def _with_preset(kind: str, cls: type, config: Mapping[str, Any]) -> Mapping[str, Any]:
+    """``config`` over the defaults of its ``preset`` (a class's ``PRESETS``, e.g. PMHT's ``"wang"``): the keys the
+    user gives win over the preset's."""
+    name = config.get("preset")
+    if not name:
+        return config
+    presets = getattr(cls, "PRESETS", {})
+    if name not in presets:
+        raise ConfigError(f"matcher {kind!r} key 'preset': unknown preset {name!r}; expected one of {sorted(presets)}")
+    return {**presets[name], **config}
+
+
 def build_matcher(config: Mapping[str, Any], *, road: Any = None) -> Any:
     """A matcher from ``config`` (must hold ``kind``); see the module docstring."""
     if not isinstance(config, Mapping):
@@ -93,6 +117,7 @@ def build_matcher(config: Mapping[str, Any], *, road: Any = None) -> Any:
         raise ConfigError(f"matcher: missing key 'kind'; expected one of {sorted(KINDS)}")
     kind = config["kind"]
     cls, fixed = _lookup(kind)
+    config = _with_preset(kind, cls, config)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # not the matcher's run-time state
     kwargs: dict[str, Any] = dict(fixed)
     for key, value in config.items():

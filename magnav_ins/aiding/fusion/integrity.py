@@ -1,0 +1,315 @@
+"""Integrity of the fusers: fault detection and exclusion (FDE) over a window of fixes, a recovery that needs
+mutually consistent evidence, and the horizontal protection level (HPL). Shared by the UKF and the factor graph;
+no filterpy, no gtsam here: the fusers hand in residuals and 2x2 covariances (north/east, m, m^2).
+
+Tests on each fix (:meth:`FaultMonitor.assess`), in this order:
+
+1. **Gate** (one fix): the NIS ``y^T S^-1 y`` of the fix against the fuser's prediction above the chi-square
+   quantile ``gate_probability`` of its degrees of freedom (2, or 3 with a height) -> excluded, reason
+   ``"NIS ... above gate ..."``.
+2. **Window** (several fixes): the innovations of a consistent filter are white and their NIS are chi-square
+   (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4.2), so the sum of the 2-dof north/east NIS of the last ``window``
+   accepted fixes (within ``window_s``) and this one is chi-square with ``2 (n + 1)`` dof; above its
+   ``window_probability`` quantile the fix is excluded, reason ``"window NIS ... over n fixes above ..."``. It
+   catches what a single gate lets through: a run of fixes each a little off (a matcher pulled by a map-error
+   patch, a filter that has been over-confident for a while).
+3. **Recovery** (safe ``reset_after``): a fix excluded by the gate is either a fault or evidence that the filter
+   has lost track. The excluded fixes since the last accepted one are kept (at most ``recovery_window``); when at
+   least ``reset_after`` of them, this one included, are *mutually consistent* -- their residuals against the
+   INS, ``r_i`` at ``t_i``, agree within their covariances ``R_i`` plus the INS error growth since,
+   ``Q_i = P_ne(now) - P_ne(t_i)``: ``sum_i (r_i - r_bar)^T (R_i + Q_i)^-1 (r_i - r_bar)`` inside the
+   ``window_probability`` quantile of a chi-square with ``2 (m - 1)`` dof, ``r_bar`` their weighted mean -- the
+   filter, not the fixes, is taken to be wrong: verdict ``"recover"`` (the fuser widens its own covariance and
+   applies the fix). Faults that are not mutually consistent (a matcher's false peaks at independent places,
+   displaced in random directions) never reach that, however many arrive; the old rule (any ``reset_after``
+   consecutive rejections re-accepted the next fix, with whatever error) accepted them.
+
+Every excluded fix says so in its :class:`Innovation` (``accepted=False``, the reason, ``extra["fault"] = 1``,
+the test's statistic and threshold); an accepted one carries ``extra["window_nis"]``; a recovery
+``extra["recovery"]`` (the number of consistent fixes it rests on).
+
+Horizontal protection level (:meth:`FaultMonitor.hpl`, m), at ``integrity_risk`` per epoch:
+
+``HPL = max(K sigma_max + m_f, d)`` with
+
+* ``K = sqrt(-2 ln integrity_risk)`` and ``sigma_max^2`` the largest eigenvalue of the 2x2 horizontal covariance:
+  for a Gaussian error ``P(|e| > K sigma_max) <= exp(-K^2 / 2) = integrity_risk`` (equality for a circular one).
+* ``m_f`` the fault-detection margin: the error that faults the tests could not see may have caused. A bias ``b``
+  on one fix passes the gate while ``b^T S^-1 b <= T_gate`` and moves the estimate by ``K_pos b``, at most
+  ``sqrt(T_gate lambda_max(P- - P+))`` (the slope bound of RAIM, Brown & Chin 1998, applied to the Kalman
+  update: ``K_pos S K_pos^T = P- - P+``, the fix's covariance reduction). The margins of successive fixes add in
+  quadrature, the old one shrunk by each later update (``|| P+ (P-)^-1 ||``, the part of an old position error
+  the update leaves) and scaled with the filter's horizontal sigma between fixes (the induced error propagates
+  through the same dynamics as the estimation error); the window test bounds a persistent bias.
+* ``d`` the doubt of unresolved exclusions: while fixes excluded since the last accepted one are unexplained, the
+  filter may be the one that is wrong, by up to the residual: ``d = max_i |r_i| + K sqrt(lambda_max(R_i +
+  P_ne))``. The next accepted fix resolves them (they were faults); a recovery resolves them the other way.
+
+No peer library (MagNav.jl, pyins, navlie, Stone Soup) provides FDE or protection levels for map-matching fixes;
+the construction is that of Kalman-filter integrity monitoring against measurement faults (Joerger & Pervan 2013,
+"Kalman filter-based integrity monitoring against sensor faults", J. Guidance, Control, and Dynamics 36(2)):
+a detection test, a fault-free term from the covariance, and a margin for what the test can miss.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ...core.errors import ConfigError
+from ...core.types import DEFAULT_INTEGRITY_RISK
+from ..gating import ChiSquareGate, chi2_threshold, nis
+
+FloatArray = NDArray[np.float64]
+
+#: default FDE settings (the fusers' constructor defaults; :class:`FaultMonitor`)
+DEFAULT_WINDOW = 4
+DEFAULT_WINDOW_S = 600.0
+DEFAULT_WINDOW_PROBABILITY = 0.999
+DEFAULT_RESET_AFTER = 3
+DEFAULT_RECOVERY_WINDOW = 6
+
+
+def integrity_factor(integrity_risk: float) -> float:
+    """``K = sqrt(-2 ln risk)``: a 2-D Gaussian error exceeds ``K sigma_max`` with probability at most ``risk``."""
+    if not (0.0 < integrity_risk < 1.0):
+        raise ConfigError(f"integrity_risk must be in (0, 1), got {integrity_risk!r}")
+    return math.sqrt(-2.0 * math.log(integrity_risk))
+
+
+def lambda_max(P: ArrayLike) -> float:
+    """Largest eigenvalue of a symmetric 2x2 matrix (closed form; 0 for a negative or non-finite result)."""
+    P = np.asarray(P, dtype=float)
+    a, b, c = P[0, 0], 0.5 * (P[0, 1] + P[1, 0]), P[1, 1]
+    lam = 0.5 * (a + c) + math.sqrt(max(0.25 * (a - c) ** 2 + b * b, 0.0))
+    return lam if math.isfinite(lam) and lam > 0.0 else 0.0
+
+
+def _psd(P: FloatArray) -> FloatArray:
+    """The nearest positive semi-definite matrix of a symmetric 2x2 (eigenvalues clipped at 0)."""
+    w, V = np.linalg.eigh(0.5 * (P + P.T))
+    return (V * np.maximum(w, 0.0)) @ V.T
+
+
+def hpl_fault_free(cov_ne: ArrayLike, integrity_risk: float = DEFAULT_INTEGRITY_RISK) -> float:
+    """``K sigma_max`` (m): the protection level of a covariance alone (no fault margin); ``cov_ne`` (2,2) m^2."""
+    return integrity_factor(integrity_risk) * math.sqrt(lambda_max(cov_ne))
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What :meth:`FaultMonitor.assess` decided: ``action`` "accept", "reject" or "recover"; ``reason`` for a
+    rejection; ``extra`` for the :class:`Innovation`; ``group`` the tags of the earlier excluded fixes a recovery
+    rests on (oldest first; the fuser may apply them too)."""
+
+    action: str
+    reason: str = ""
+    extra: dict[str, float] = field(default_factory=dict)
+    group: tuple[Any, ...] = ()
+
+
+@dataclass
+class _Excluded:
+    t: float
+    r: FloatArray  # residual fix - INS (north, east) m at t
+    R: FloatArray  # fix covariance m^2
+    P: FloatArray  # fuser's horizontal covariance at t (prior) m^2
+    by_gate: bool
+    tag: Any = None
+
+
+class FaultMonitor:
+    """The fault detection, recovery and protection level of one fuser (module docstring).
+
+    ``gate_probability``: the single-fix gate (None: no gate, no window test, no recovery: trusted fixes);
+    ``window``: accepted fixes in the window test (0: no window test); ``window_s``: their maximum age (s);
+    ``window_probability``: the window and mutual-consistency tests' probability; ``reset_after``: mutually
+    consistent excluded fixes needed for a recovery (0: never recover); ``recovery_window``: excluded fixes kept
+    for it; ``integrity_risk``: of the protection level, per epoch."""
+
+    def __init__(
+        self,
+        gate_probability: float | None = 0.9999,
+        *,
+        window: int = DEFAULT_WINDOW,
+        window_s: float = DEFAULT_WINDOW_S,
+        window_probability: float = DEFAULT_WINDOW_PROBABILITY,
+        reset_after: int = DEFAULT_RESET_AFTER,
+        recovery_window: int = DEFAULT_RECOVERY_WINDOW,
+        integrity_risk: float = DEFAULT_INTEGRITY_RISK,
+    ) -> None:
+        if int(window) < 0 or int(reset_after) < 0:
+            raise ConfigError(f"fault window and reset_after must be >= 0, got {window!r}, {reset_after!r}")
+        if not (window_s > 0):
+            raise ConfigError(f"fault window_s must be > 0 s, got {window_s!r}")
+        chi2_threshold(2, window_probability)  # validates the probability
+        self.gate_probability = None if gate_probability is None else float(gate_probability)
+        self.window = int(window)
+        self.window_s = float(window_s)
+        self.window_probability = float(window_probability)
+        self.reset_after = int(reset_after)
+        self.recovery_window = max(int(recovery_window), self.reset_after)
+        self.integrity_risk = float(integrity_risk)
+        self.k = integrity_factor(self.integrity_risk)
+        self._gate2 = ChiSquareGate(self.gate_probability, 2)
+        self._accepted: deque[tuple[float, float]] = deque()  # (t, 2-dof NIS) of the window
+        self._excluded: list[_Excluded] = []  # unresolved exclusions since the last accepted fix
+        self._margin = 0.0  # fault-detection margin (m) at the last accepted fix
+        self._lam_ref = 0.0  # lambda_max of the horizontal covariance just after it (m^2)
+        self.n_faults = 0  # fixes excluded by a test
+        self.n_recoveries = 0
+
+    # ------------------------------------------------------------------------------------------- decisions
+    def gate_threshold(self, dof: int = 2) -> float:
+        """The single-fix gate for ``dof`` degrees of freedom (inf without a gate)."""
+        return ChiSquareGate(self.gate_probability, dof).threshold
+
+    def assess(
+        self,
+        t: float,
+        residual_ne: ArrayLike,
+        S_ne: ArrayLike,
+        R_ne: ArrayLike,
+        P_ne: ArrayLike,
+        *,
+        nis_gate: float | None = None,
+        dof: int = 2,
+        tag: Any = None,
+    ) -> Verdict:
+        """Decide on a fix at ``t`` (s) with residual fix - INS ``residual_ne`` (m), innovation covariance
+        ``S_ne`` (2,2), fix covariance ``R_ne`` and the fuser's prior horizontal covariance ``P_ne`` (m^2).
+        ``nis_gate`` / ``dof``: the NIS the gate tests when it has more dof than north/east (a height); ``tag``:
+        the fuser's handle of this fix, returned in a later recovery's ``group``. A "reject" is recorded here; after
+        "accept" or "recover" the fuser applies the fix and calls :meth:`accepted`."""
+        r = np.asarray(residual_ne, float).reshape(2)
+        S = np.asarray(S_ne, float)
+        R = np.asarray(R_ne, float)
+        P = np.asarray(P_ne, float)
+        v2 = nis(r, S)
+        v = v2 if nis_gate is None else float(nis_gate)
+        if self.gate_probability is None:
+            return Verdict("accept", extra={"nis_ne": v2})
+        T = self.gate_threshold(dof)
+        if not (np.isfinite(v) and v <= T):
+            ex = _Excluded(float(t), r, R, P, True, tag)
+            group = self._recovery_group(ex, P) if np.isfinite(v) else None
+            if group is not None:
+                return Verdict(
+                    "recover",
+                    extra={"recovery": float(len(group) + 1), "nis_gate": v},
+                    group=tuple(e.tag for e in group),
+                )
+            self._exclude(ex)
+            return Verdict(
+                "reject", f"NIS {v:.1f} above gate {T:.1f} ({dof} dof)", {"fault": 1.0, "gate": T, "nis_gate": v}
+            )
+        if self.window > 0:
+            self._prune(float(t), self.window)
+            n = len(self._accepted) + 1
+            s = v2 + sum(x[1] for x in self._accepted)
+            Tw = chi2_threshold(2 * n, self.window_probability)
+            if n > 1 and s > Tw:
+                self._exclude(_Excluded(float(t), r, R, P, False, tag))
+                return Verdict(
+                    "reject",
+                    f"window NIS {s:.1f} over {n} fixes above {Tw:.1f}",
+                    {"fault": 1.0, "window_nis": s, "window_dof": 2.0 * n, "window_threshold": Tw, "nis_gate": v},
+                )
+            return Verdict("accept", extra={"window_nis": s, "window_dof": 2.0 * n})
+        return Verdict("accept")
+
+    def _exclude(self, ex: _Excluded) -> None:
+        self.n_faults += 1
+        self._excluded.append(ex)
+        if len(self._excluded) > self.recovery_window:
+            self._excluded.pop(0)
+
+    def _prune(self, t: float, keep: int) -> None:
+        """Drop window entries older than ``window_s`` at ``t`` and all but the last ``keep``."""
+        while self._accepted and (t - self._accepted[0][0] > self.window_s or len(self._accepted) > keep):
+            self._accepted.popleft()
+
+    def _recovery_group(self, new: _Excluded, P_now: FloatArray) -> list[_Excluded] | None:
+        """The largest set of earlier gate exclusions that, with ``new``, is mutually consistent and has at least
+        ``reset_after`` members (None: no recovery). Residuals are compared with covariance ``R_i + Q_i``,
+        ``Q_i = P_now - P_i`` (the INS error growth since ``t_i``, no fix having been applied since)."""
+        if self.reset_after < 1:
+            return None
+        old = [e for e in self._excluded if e.by_gate]
+        if len(old) + 1 < self.reset_after:
+            return None
+        for size in range(len(old), self.reset_after - 2, -1):
+            for combo in itertools.combinations(old, size):
+                members = [*combo, new]
+                if self._consistent(members, P_now):
+                    return list(combo)
+        return None
+
+    def _consistent(self, members: list[_Excluded], P_now: FloatArray) -> bool:
+        if len(members) < 2:
+            return True
+        W = np.zeros((2, 2))
+        Wr = np.zeros(2)
+        Ci = []
+        for e in members:
+            C = e.R + _psd(P_now - e.P)
+            inv = np.linalg.inv(C)
+            Ci.append(inv)
+            W += inv
+            Wr += inv @ e.r
+        r_bar = np.linalg.solve(W, Wr)
+        q = sum(float((e.r - r_bar) @ inv @ (e.r - r_bar)) for e, inv in zip(members, Ci, strict=True))
+        return q <= chi2_threshold(2 * (len(members) - 1), self.window_probability)
+
+    def accepted(self, t: float, nis_ne: float, P_prior_ne: ArrayLike, P_post_ne: ArrayLike, *, recovery: bool = False):
+        """The fuser applied a fix at ``t`` (2-dof NIS ``nis_ne``; horizontal covariance before and after, m^2):
+        resolve the exclusions, slide the window (a recovery starts a new one), update the fault margin."""
+        Pm = np.asarray(P_prior_ne, float)
+        Pp = np.asarray(P_post_ne, float)
+        self._excluded.clear()
+        if recovery:
+            self.n_recoveries += 1
+            self._accepted.clear()
+        elif self.window > 0 and np.isfinite(nis_ne):
+            self._prune(float(t), self.window - 1)
+            self._accepted.append((float(t), float(nis_ne)))
+        T = self._gate2.threshold if self.gate_probability is not None else 0.0
+        lam_m = lambda_max(Pm)
+        old = self._margin * math.sqrt(lam_m / self._lam_ref) if self._lam_ref > 0 else 0.0
+        try:
+            shrink = float(np.linalg.norm(Pp @ np.linalg.inv(Pm), 2))
+        except np.linalg.LinAlgError:
+            shrink = 1.0
+        new2 = T * lambda_max(_psd(Pm - Pp)) if np.isfinite(T) else 0.0
+        self._margin = math.sqrt((min(shrink, 1.0) * old) ** 2 + new2)
+        self._lam_ref = lambda_max(Pp)
+
+    # ----------------------------------------------------------------------------------- protection level
+    def margin(self, P_ne: ArrayLike) -> float:
+        """The fault-detection margin (m) now, for the current horizontal covariance ``P_ne`` (m^2)."""
+        if self._margin <= 0.0 or self._lam_ref <= 0.0:
+            return 0.0
+        return self._margin * math.sqrt(lambda_max(P_ne) / self._lam_ref)
+
+    def doubt(self, P_ne: ArrayLike) -> float:
+        """The doubt term (m): the largest residual of the unresolved exclusions plus ``K`` sigmas of the fix and
+        the filter (0 without any)."""
+        if not self._excluded:
+            return 0.0
+        P = np.asarray(P_ne, float)
+        return max(float(np.hypot(*e.r)) + self.k * math.sqrt(lambda_max(e.R + P)) for e in self._excluded)
+
+    def hpl(self, P_ne: ArrayLike) -> float:
+        """The horizontal protection level (m) for the current horizontal covariance ``P_ne`` (m^2); NaN when
+        ``P_ne`` is not finite."""
+        P = np.asarray(P_ne, float)
+        if not np.all(np.isfinite(P)):
+            return float("nan")
+        nominal = self.k * math.sqrt(lambda_max(P)) + self.margin(P)
+        return max(nominal, self.doubt(P))

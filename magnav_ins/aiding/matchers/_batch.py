@@ -1,0 +1,165 @@
+"""Helpers shared by the gravity-matching baselines (TERCOM, ICCP, the point-mass filter) and PMHT-MM.
+
+* :func:`track_window` - a batch window's INS-indicated track in frame metres, its gates, the reading variance
+  with the map's error (``map_error.resolve_map_error``) and the INS drift within the batch.
+* :func:`adds_information` / :func:`information_refusal` - the rule for issuing a fix (issue 16): a fix is issued
+  whenever its covariance is smaller than the prior's in some direction (it adds information, whatever the prior),
+  and refused as "flat map" only when it adds none.
+
+Map error and its correlation (ours, stated): reading ``t`` has variance ``s_t^2 = sigma^2 + b sigma_map,t^2``,
+``sigma_map,t`` the map's 1-sigma error at the INS position; ``b = clip(ell / ds, 1, T)`` with ``ell`` the map
+error's correlation length and ``ds`` the median along-track distance between readings: readings closer than one
+correlation length share their map error, so their map-error part counts as ``b`` times larger (each block of
+``b`` readings carries the map-error information of one).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...core.protocols import FieldMap, MatchWindow
+from ...core.types import Fix
+from ._local import WorkFrame, make_frame, map_components, sigma_window
+from .map_error import resolve_map_error
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class TrackWindow:
+    """The last ``T`` readings of a window in the frame about the INS position of the last reading.
+
+    ``t`` (T,) s; ``z`` (T, c) readings; ``x_ins`` (T, 2) INS north/east m; ``cov`` (T, 2, 2) its covariance m^2;
+    ``half`` (T, 2) gate half-widths m; ``good`` (T,) finite readings; ``s2`` (T,) reading variance (sensor + map
+    error, map unit^2); ``rel_drift`` (T,) m the INS drift of scan t relative to the last scan (the growth of the
+    INS sigma between them); ``sensor_sigma`` the readings' own sigma; ``map_error_source`` where the map error
+    came from (``map_error.MapErrorModel.source``)."""
+
+    frame: WorkFrame
+    t: FloatArray
+    z: FloatArray
+    x_ins: FloatArray
+    cov: FloatArray
+    half: FloatArray
+    good: NDArray[np.bool_]
+    s2: FloatArray
+    rel_drift: FloatArray
+    sensor_sigma: float
+    map_error_source: str
+
+
+def track_window(
+    window: MatchWindow,
+    fmap: FieldMap,
+    batch: int,
+    gate_sigma: float,
+    window_floor_m: float,
+    map_sigma: float | None = None,
+    correlation_m: float | None = None,
+) -> TrackWindow | str:
+    """The window's last ``batch`` readings as a :class:`TrackWindow`, or the reason there is none (NaN readings,
+    non-finite INS positions or covariances, wrong number of components)."""
+    rd = window.readings
+    T = min(int(batch), len(rd))
+    if T < 2:
+        return f"need at least 2 readings, got {T}"
+    sl = slice(len(rd) - T, len(rd))
+    ncomp = map_components(fmap)
+    z = np.asarray(rd.value, dtype=float)[sl].reshape(T, -1)
+    if z.shape[1] != ncomp:
+        return f"reading has {z.shape[1]} components, map has {ncomp}"
+    good = np.all(np.isfinite(z), axis=1)
+    if good.sum() < 2:
+        return "fewer than 2 finite readings (NaN)"
+    lat, lon = np.asarray(window.lat, float)[sl], np.asarray(window.lon, float)[sl]
+    if not (np.all(np.isfinite(lat)) and np.all(np.isfinite(lon))):
+        return "INS positions not finite"
+    cov = np.asarray(window.cov_ne, float)[sl]
+    half = np.array([sigma_window(c, gate_sigma, window_floor_m) for c in cov])
+    if not np.all(np.isfinite(half)):
+        return "prior covariance not finite"
+    frame = make_frame(fmap, float(lat[-1]), float(lon[-1]))
+    dn, de = frame.to_ne(lat, lon)
+    x_ins = np.column_stack([dn, de])
+    s2, source = reading_variance(fmap, lat, lon, x_ins, float(rd.sigma), map_sigma, correlation_m)
+    sig_ins = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
+    growth = np.maximum(np.diff(sig_ins), 0.0)
+    rel = np.append(np.cumsum(growth[::-1])[::-1], 0.0)
+    return TrackWindow(frame, np.asarray(rd.t, float)[sl], z, x_ins, cov, half, good, s2, rel, float(rd.sigma), source)
+
+
+def reading_variance(
+    fmap: FieldMap,
+    lat: FloatArray,
+    lon: FloatArray,
+    x_ne: FloatArray,
+    sensor_sigma: float,
+    map_sigma: float | None = None,
+    correlation_m: float | None = None,
+) -> tuple[FloatArray, str]:
+    """Per-reading variance ``sigma^2 + b sigma_map^2`` (map unit^2, (T,)) of readings at ``lat``, ``lon`` (rad; their
+    frame positions ``x_ne`` (T, 2) m give the along-track spacing) and where the map error came from (module
+    docstring; ``map_error.resolve_map_error`` with the matcher's ``map_sigma`` / ``correlation_m`` options)."""
+    me = resolve_map_error(fmap, map_sigma, correlation_m)
+    sig_m = np.asarray(me.sigma_at(lat, lon), float)
+    sig_m = np.where(np.isfinite(sig_m), sig_m, 0.0)
+    ds = np.hypot(*np.diff(np.asarray(x_ne, float), axis=0).T)
+    ds_med = float(np.median(ds)) if ds.size else 0.0
+    ell = float(me.correlation_m)
+    b = float(np.clip(ell / ds_med, 1.0, len(sig_m))) if (np.isfinite(ell) and ell > 0 and ds_med > 0) else 1.0
+    return float(sensor_sigma) ** 2 + b * sig_m**2, me.source
+
+
+def adds_information(cov_fix: FloatArray, cov_prior: FloatArray, margin: float = 1.0) -> bool:
+    """True when ``cov_fix`` (2, 2) is smaller than ``cov_prior`` (2, 2) in some direction: the smallest
+    eigenvalue of ``P^-1/2 C P^-1/2`` is below ``margin`` (1: any direction where the fix is tighter)."""
+    P = 0.5 * (np.asarray(cov_prior, float) + np.asarray(cov_prior, float).T)
+    C = 0.5 * (np.asarray(cov_fix, float) + np.asarray(cov_fix, float).T)
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(C))):
+        return bool(np.all(np.isfinite(C)))
+    ev, V = np.linalg.eigh(P)
+    if ev[0] <= 0:
+        return False  # a prior without uncertainty in some direction: nothing to add there
+    W = V / np.sqrt(ev)  # P^-1/2 in the eigenbasis
+    return bool(np.linalg.eigvalsh(W.T @ C @ W)[0] < margin)
+
+
+def information_refusal(t: float, cov_fix: FloatArray, cov_prior: FloatArray, source: str, score: float) -> Fix:
+    """The "no fix" of a fix that adds no information over its prior (reason names both sigmas)."""
+    sf = np.sqrt(np.linalg.eigvalsh(0.5 * (cov_fix + cov_fix.T)))
+    sp = np.sqrt(np.maximum(np.linalg.eigvalsh(0.5 * (cov_prior + cov_prior.T)), 0.0))
+    return Fix.no_fix(
+        t,
+        f"flat map: the fix adds no information over the prior (fix sigmas {sf[0]:.3g} / {sf[-1]:.3g} m, "
+        f"prior sigmas {sp[0]:.3g} / {sp[-1]:.3g} m)",
+        source,
+        score,
+    )
+
+
+def offset_grid(
+    half_n: float, half_e: float, step: float, max_nodes: int
+) -> tuple[FloatArray, FloatArray, float, float]:
+    """Offsets ``(K,)`` north, ``(K,)`` east (m) of a regular grid spanning ``[-half, half]`` on each axis with about
+    ``step`` spacing (coarsened so it has at most ``max_nodes`` nodes), and the spacings ``(D_n, D_e)`` m."""
+    step = max(float(step), 1e-3)
+    while (2 * np.ceil(half_n / step) + 1) * (2 * np.ceil(half_e / step) + 1) > max_nodes:
+        step *= 1.2
+    kn, ke = max(int(np.ceil(half_n / step)), 1), max(int(np.ceil(half_e / step)), 1)
+    on, oe = np.linspace(-half_n, half_n, 2 * kn + 1), np.linspace(-half_e, half_e, 2 * ke + 1)
+    ON, OE = np.meshgrid(on, oe, indexing="ij")
+    return ON.ravel(), OE.ravel(), float(on[1] - on[0]), float(oe[1] - oe[0])
+
+
+def local_gradient2(frame: WorkFrame, n: FloatArray, e: FloatArray, h: float) -> FloatArray:
+    """Squared horizontal gradient norm (unit^2/m^2, summed over components) at frame points, by central
+    differences of step ``h`` m; 0 where the map has no value."""
+    n = np.asarray(n, float)
+    e = np.asarray(e, float)
+    gn = frame.sample(n + h, e) - frame.sample(n - h, e)
+    ge = frame.sample(n, e + h) - frame.sample(n, e - h)
+    g2 = (gn.reshape(n.size, -1) ** 2 + ge.reshape(n.size, -1) ** 2).sum(axis=1) / (2 * h) ** 2
+    return np.nan_to_num(g2)

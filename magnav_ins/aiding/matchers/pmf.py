@@ -1,0 +1,214 @@
+"""Point-mass filter: recursive Bayesian estimation of the horizontal position on a grid (Bergman, Ljung &
+Gustafsson 1999, "Terrain navigation using Bayesian statistics", IEEE Control Systems 19(3), 33-40; Bergman 1999,
+PhD thesis, Linkoping, ch. 5).
+
+The density of the INS position error is held as point masses on a regular grid of offsets ``d`` from the INS
+position (the grid rides with the INS: Bergman's time update moves the masses by the INS displacement ``u_t``):
+
+* initiation: the grid spans ``gate_sigma`` prior sigmas about the INS position with ``grid_points`` nodes a side;
+  the masses are uniform over the gate (``use_prior=False``, a diffuse prior: the fix is then the readings'
+  evidence alone and the fuser can add it to the INS without counting the INS twice) or the INS Gaussian
+  (``use_prior=True``, Bergman's recursion from the prior);
+* time update: convolution with the INS drift since the last update, ``N(0, q I)`` with ``q`` the growth of the
+  INS position variance (plus ``drift_sigma^2 dt``), done as a Gaussian filter on the grid; the grid is widened
+  (masses interpolated) when the INS sigma outgrows it;
+* measurement update: ``w(d) <- w(d) N(z; m(x_ins + d), s^2 + |grad m|^2 D^2 / 12)`` (``s^2`` sensor + map error,
+  :mod:`._batch`; ``D`` the grid spacing, each node standing for its cell);
+* output (:meth:`PointMassFilter.to_fix`): the posterior mean and covariance (second moment plus ``D^2 / 12``) at
+  the INS position plus the mean offset. With ``restart=True`` (default) the filter is re-initiated at the next
+  reading, so consecutive fixes are built from disjoint readings and are independent (the fuser takes them as
+  such); ``restart=False`` keeps Bergman's full recursion (each fix then repeats all the earlier evidence: only
+  for a free-running PMF, not for fusing).
+
+No fix: "off the map" (no map values under the grid), "flat map" when the fix adds no information over the prior
+(:func:`._batch.adds_information`), "at the edge" when more than ``edge_mass`` of the posterior sits on the grid's
+border (the truth may be outside the grid).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from ...core.errors import ConfigError
+from ...core.protocols import FieldMap
+from ...core.types import FieldReadings, Fix, NavEstimate
+from ._batch import adds_information, information_refusal
+from ._local import make_frame, map_components, sigma_window
+from .map_error import resolve_map_error
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class PMFState:
+    """The point masses: INS position ``lat``, ``lon`` rad, ``h`` m at time ``t`` s and its horizontal covariance
+    ``cov_ne`` (m^2) at the last time update; offset axes ``an``, ``ae`` (m, north / east of the INS position);
+    normalised masses ``w`` (len(an), len(ae)); ``updates`` readings absorbed since initiation; the last ``fix``;
+    ``restart`` re-initiate at the next time update; ``frame`` the working frame of the last update."""
+
+    t: float
+    lat: float
+    lon: float
+    h: float
+    cov_ne: FloatArray
+    an: FloatArray
+    ae: FloatArray
+    w: FloatArray
+    updates: int = 0
+    fix: Fix | None = None
+    restart: bool = False
+    off_map: bool = False
+    frame: Any = None
+
+
+@dataclass
+class PointMassFilter:
+    """Point-mass filter (module docstring). Recursive: ``initiate``, ``predict``, ``update``, ``to_fix``.
+
+    ``grid_points`` nodes a side; ``gate_sigma`` grid half-width in prior sigmas (at least ``window_floor_m``);
+    ``drift_sigma`` extra random walk of the INS position (m/sqrt(s)); ``use_prior``; ``restart``;
+    ``map_sigma`` / ``correlation_m`` override the map's error; ``edge_mass`` the border-mass cut-off."""
+
+    grid_points: int = 81
+    gate_sigma: float = 4.0
+    window_floor_m: float = 10.0
+    drift_sigma: float = 0.0
+    use_prior: bool = False
+    restart: bool = True
+    map_sigma: float | None = None
+    correlation_m: float | None = None
+    edge_mass: float = 0.05
+    name: str = "pmf"
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.grid_points, int) and self.grid_points >= 5):
+            raise ConfigError(f"pmf 'grid_points': expected an integer >= 5, got {self.grid_points!r}")
+        if not self.gate_sigma > 0:
+            raise ConfigError(f"pmf 'gate_sigma': expected > 0, got {self.gate_sigma!r}")
+        if not 0 < self.edge_mass < 1:
+            raise ConfigError(f"pmf 'edge_mass': expected 0 < edge_mass < 1, got {self.edge_mass!r}")
+
+    # ------------------------------------------------------------------ recursion
+    def initiate(self, prior: NavEstimate, rng: np.random.Generator | None = None) -> PMFState:  # noqa: ARG002
+        """Point masses over the gate of ``prior`` (uniform, or its Gaussian with ``use_prior``)."""
+        nav = prior.nav
+        cov = np.array(prior.cov_ne, dtype=float)
+        hn, he = sigma_window(cov, self.gate_sigma, self.window_floor_m)
+        if not (np.isfinite(hn) and np.isfinite(he)):
+            hn = he = self.window_floor_m
+        k = self.grid_points // 2
+        an, ae = np.linspace(-hn, hn, 2 * k + 1), np.linspace(-he, he, 2 * k + 1)
+        if self.use_prior and np.all(np.isfinite(cov)) and np.linalg.det(cov) > 0:
+            GN, GE = np.meshgrid(an, ae, indexing="ij")
+            ci = np.linalg.inv(cov)
+            w = np.exp(-0.5 * (ci[0, 0] * GN**2 + 2 * ci[0, 1] * GN * GE + ci[1, 1] * GE**2))
+        else:
+            w = np.ones((an.size, ae.size))
+        return PMFState(float(nav.t), float(nav.lat), float(nav.lon), float(nav.h), cov, an, ae, w / w.sum())
+
+    def predict(self, state: PMFState, prior: NavEstimate) -> PMFState:
+        """Time update to the INS estimate ``prior``: the masses ride with the INS and spread by its drift."""
+        if state.restart:
+            return self.initiate(prior)
+        nav = prior.nav
+        cov = np.array(prior.cov_ne, dtype=float)
+        v0 = 0.5 * float(np.trace(state.cov_ne))
+        v1 = 0.5 * float(np.trace(cov))
+        dt = max(float(nav.t) - state.t, 0.0)
+        q = max(v1 - v0, 0.0) + self.drift_sigma**2 * dt if np.isfinite(v1 - v0) else 0.0
+        an, ae, w = state.an, state.ae, state.w
+        hn, he = sigma_window(cov, self.gate_sigma, self.window_floor_m)
+        if np.isfinite(hn) and (hn > 1.2 * an[-1] or he > 1.2 * ae[-1]):  # the INS sigma outgrew the grid: widen
+            k = self.grid_points // 2
+            bn, be = (
+                np.linspace(-max(hn, an[-1]), max(hn, an[-1]), 2 * k + 1),
+                np.linspace(-max(he, ae[-1]), max(he, ae[-1]), 2 * k + 1),
+            )
+            BN, BE = np.meshgrid(bn, be, indexing="ij")
+            fi = (BN - an[0]) / (an[1] - an[0])
+            fj = (BE - ae[0]) / (ae[1] - ae[0])
+            dens = w / ((an[1] - an[0]) * (ae[1] - ae[0]))
+            w = ndimage.map_coordinates(dens, [fi, fj], order=1, mode="constant", cval=0.0)
+            w = w * (bn[1] - bn[0]) * (be[1] - be[0])
+            an, ae = bn, be
+        if q > 0:
+            sn, se = np.sqrt(q) / (an[1] - an[0]), np.sqrt(q) / (ae[1] - ae[0])
+            if max(sn, se) > 0.05:
+                w = ndimage.gaussian_filter(w, sigma=(sn, se), mode="constant", cval=0.0, truncate=4.0)
+        tot = float(w.sum())
+        w = w / tot if tot > 0 else np.full_like(w, 1.0 / w.size)
+        return PMFState(float(nav.t), float(nav.lat), float(nav.lon), float(nav.h), cov, an, ae, w, state.updates,
+                        state.fix, False, state.off_map)  # fmt: skip
+
+    def update(self, state: PMFState, readings: FieldReadings, fmap: FieldMap) -> PMFState:
+        """Measurement update with the last reading of ``readings``."""
+        if len(readings) == 0:
+            return state
+        z = np.asarray(readings.value, float).reshape(len(readings), -1)[-1]
+        if z.size != map_components(fmap) or not np.all(np.isfinite(z)):
+            state.fix = Fix.no_fix(float(readings.t[-1]), "reading is NaN or has the wrong components", self.name)
+            return state
+        frame = make_frame(fmap, state.lat, state.lon)
+        GN, GE = np.meshgrid(state.an, state.ae, indexing="ij")
+        m = frame.sample(GN.ravel(), GE.ravel()).reshape(GN.shape + (-1,))
+        me = resolve_map_error(fmap, self.map_sigma, self.correlation_m)
+        s_map = float(np.nan_to_num(me.sigma_at(np.array([state.lat]), np.array([state.lon]))[0]))
+        dn, de = float(state.an[1] - state.an[0]), float(state.ae[1] - state.ae[0])
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN grid off the map: handled below
+            g2 = np.nanmean(np.sum(np.gradient(m, dn, axis=0) ** 2 + np.gradient(m, de, axis=1) ** 2, axis=-1))
+        v = float(readings.sigma) ** 2 + s_map**2 + (float(g2) if np.isfinite(g2) else 0.0) * (dn * dn + de * de) / 12
+        ll = -0.5 * np.sum((m - z) ** 2, axis=-1) / v
+        finite = np.isfinite(ll)
+        if not np.any(finite):
+            state.off_map = True
+            state.fix = Fix.no_fix(float(readings.t[-1]), "off the map: no map values under the grid", self.name)
+            return state
+        ll = np.where(finite, ll, -np.inf)
+        w = state.w * np.exp(ll - np.max(ll[finite]))
+        tot = float(w.sum())
+        if not tot > 0:  # the reading contradicts every mass: keep the prior, say so
+            state.fix = Fix.no_fix(float(readings.t[-1]), "diverged: the reading fits no point mass", self.name)
+            return state
+        state.w = w / tot
+        state.frame = frame
+        state.t = float(readings.t[-1])
+        state.updates += 1
+        state.fix = None
+        return state
+
+    def to_fix(self, state: PMFState) -> Fix:
+        """The posterior mean and covariance as a fix at the INS position plus the mean offset."""
+        fix = self._fix(state)
+        if self.restart:
+            state.restart = True
+        return fix
+
+    def _fix(self, state: PMFState) -> Fix:
+        t = state.t
+        if state.fix is not None and not state.fix.available:
+            return state.fix
+        if state.updates == 0:
+            return Fix.no_fix(t, "no reading since the last fix", self.name)
+        w = state.w
+        GN, GE = np.meshgrid(state.an, state.ae, indexing="ij")
+        mn, me_ = float(np.sum(w * GN)), float(np.sum(w * GE))
+        dn, de = GN - mn, GE - me_
+        Dn, De = float(state.an[1] - state.an[0]), float(state.ae[1] - state.ae[0])
+        C = np.array([[np.sum(w * dn * dn), np.sum(w * dn * de)], [np.sum(w * dn * de), np.sum(w * de * de)]])
+        C = C + np.diag([Dn * Dn, De * De]) / 12.0
+        if not adds_information(C, state.cov_ne):
+            return information_refusal(t, C, state.cov_ne, self.name, float(state.updates))
+        edge = float(w[0].sum() + w[-1].sum() + w[1:-1, 0].sum() + w[1:-1, -1].sum())
+        if edge > self.edge_mass:
+            return Fix.no_fix(
+                t, f"at the edge: {edge:.0%} of the posterior on the grid's border (truth may be outside)", self.name
+            )
+        lat, lon = state.frame.to_latlon(mn, me_)
+        return Fix(t, float(lat), float(lon), 0.5 * (C + C.T), True, "", float(state.updates), self.name)

@@ -1,0 +1,118 @@
+"""TERCOM: batch profile correlation over a grid of offsets (Baker & Clem 1977, "Terrain contour matching (TERCOM)
+primer", ASD-TR-77-61; Golden 1980, "Terrain contour matching (TERCOM): a cruise missile guidance aid", Proc. SPIE
+238, 10-18).
+
+The field profile measured along the INS-indicated track of a batch (the last ``batch`` readings, positions
+``x_t``) is compared with the map profile along the same track translated rigidly by an offset ``d`` on a regular
+grid covering the gate (``gate_sigma`` prior sigmas of the last reading): the criterion is Golden's mean absolute
+difference ``MAD(d) = mean_t |z_t - m(x_t + d)| / s_t`` (``criterion="mad"``) or the mean squared difference
+``MSD(d) = mean_t (z_t - m(x_t + d))^2 / s_t^2`` (``"msd"``). The offset with the smallest criterion is the fix
+(at the last reading: ``x_T + d*``). TERCOM is translation-only: it assumes the INS track's shape is right over the
+batch.
+
+Fix covariance (ours; TERCOM reports none): the second moment about ``d*`` of the Gaussian batch likelihood of the
+offset over the grid (a flat prior over the gate), ``p(d) ~ prod_t N(z_t; m(x_t + d), v_t)`` with
+``v_t = s_t^2 + |grad m|_t^2 (D_n^2 + D_e^2) / 12 + |grad m|_t^2 r_t^2`` (the offset cell through the local gradient;
+``r_t`` the INS drift of scan t relative to the last one), plus ``D^2 / 12`` per axis for the grid quantisation.
+Where the likelihood has several modes in the gate the second moment covers them. ``s_t^2`` is the sensor
+variance plus the map's error (:mod:`._batch`). No fix ("diverged") when the readings disagree with the map at
+``d*`` (mean ``(z - m)^2 / v`` per reading above ``max_chi2``); "flat map" only when the fix adds no information over
+the prior (:func:`._batch.adds_information`); "off the map" when no offset has map values for every good reading.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...core.errors import ConfigError
+from ...core.protocols import FieldMap, MatchWindow
+from ...core.types import Fix
+from ._batch import adds_information, information_refusal, local_gradient2, offset_grid, track_window
+from ._local import spacing_of
+
+
+@dataclass
+class TercomMatcher:
+    """TERCOM batch matcher (module docstring). ``batch`` readings per profile; ``criterion`` "mad" | "msd";
+    ``gate_sigma`` gate half-width in prior sigmas (at least ``window_floor_m`` m); ``step_m`` offset grid spacing
+    (default a quarter of the map's node spacing, at most a twentieth of the gate), coarsened to at most
+    ``max_offsets`` offsets; ``map_sigma`` / ``correlation_m`` override the map's error (``map_error``);
+    ``max_chi2`` the profile misfit above which the fix is "diverged"."""
+
+    batch: int = 30
+    criterion: str = "mad"
+    gate_sigma: float = 4.0
+    window_floor_m: float = 10.0
+    step_m: float | None = None
+    max_offsets: int = 40_000
+    map_sigma: float | None = None
+    correlation_m: float | None = None
+    max_chi2: float = 9.0
+    name: str = "tercom"
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.batch, int) and self.batch >= 2):
+            raise ConfigError(f"tercom 'batch': expected an integer >= 2, got {self.batch!r}")
+        if self.criterion not in ("mad", "msd"):
+            raise ConfigError(f"tercom 'criterion': expected 'mad' or 'msd', got {self.criterion!r}")
+        for key in ("gate_sigma", "max_chi2"):
+            if not getattr(self, key) > 0:
+                raise ConfigError(f"tercom '{key}': expected > 0, got {getattr(self, key)!r}")
+        if self.max_offsets < 9:
+            raise ConfigError(f"tercom 'max_offsets': expected >= 9, got {self.max_offsets!r}")
+
+    def match(self, window: MatchWindow, fmap: FieldMap) -> Fix:
+        """One fix at the window's last reading (or a "no fix" with the reason)."""
+        t_last = float(window.readings.t[-1]) if len(window.readings) else float("nan")
+        try:
+            return self._match(window, fmap, t_last)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            return Fix.no_fix(t_last, f"TERCOM failed on the data: {exc}", self.name)
+
+    def _match(self, window: MatchWindow, fmap: FieldMap, t_last: float) -> Fix:
+        tw = track_window(window, fmap, self.batch, self.gate_sigma, self.window_floor_m, self.map_sigma,
+                          self.correlation_m)  # fmt: skip
+        if isinstance(tw, str):
+            return Fix.no_fix(t_last, tw, self.name)
+        hn, he = float(tw.half[-1, 0]), float(tw.half[-1, 1])
+        step = self.step_m or min(0.25 * spacing_of(fmap, min(hn, he) / 10.0), min(hn, he) / 20.0)
+        on, oe, Dn, De = offset_grid(hn, he, step, self.max_offsets)
+        idx = np.flatnonzero(tw.good)
+        K = on.size
+        resid = np.empty((idx.size, K))
+        for r, t in enumerate(idx):
+            m = tw.frame.sample(tw.x_ins[t, 0] + on, tw.x_ins[t, 1] + oe).reshape(K, -1)
+            resid[r] = np.sqrt(np.sum((m - tw.z[t]) ** 2, axis=1))  # |z - m| (norm over components)
+        finite = np.all(np.isfinite(resid), axis=0)
+        if not np.any(finite):
+            return Fix.no_fix(t_last, "off the map: no offset in the gate has map values along the track", self.name)
+        s = np.sqrt(tw.s2[idx])[:, None]
+        crit = np.mean(resid / s, axis=0) if self.criterion == "mad" else np.mean((resid / s) ** 2, axis=0)
+        crit = np.where(finite, crit, np.inf)
+        k = int(np.argmin(crit))
+        d = np.array([on[k], oe[k]])
+        # likelihood of the offset: variance with the offset cell and the INS drift through the local gradient
+        g2 = local_gradient2(tw.frame, tw.x_ins[idx, 0] + d[0], tw.x_ins[idx, 1] + d[1], max(0.5 * min(Dn, De), 0.5))
+        v = tw.s2[idx] + g2 * ((Dn**2 + De**2) / 12.0 + tw.rel_drift[idx] ** 2)
+        ll = np.where(finite, -0.5 * np.sum(resid**2 / v[:, None], axis=0), -np.inf)
+        p = np.exp(ll - np.max(ll))
+        p /= p.sum()
+        a = np.column_stack([on - d[0], oe - d[1]])
+        C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag([Dn**2, De**2]) / 12.0
+        chi2 = float(np.mean(resid[:, k] ** 2 / v))
+        prior = tw.cov[-1]
+        if not adds_information(C, prior):
+            return information_refusal(t_last, C, prior, self.name, chi2)
+        if chi2 > self.max_chi2:
+            return Fix.no_fix(
+                t_last,
+                f"diverged: readings disagree with the map at the best offset (chi2 per reading {chi2:.3g} above "
+                f"{self.max_chi2:g})",
+                self.name,
+                chi2,
+            )
+        x = tw.x_ins[-1] + d
+        lat, lon = tw.frame.to_latlon(x[0], x[1])
+        return Fix(float(tw.t[-1]), float(lat), float(lon), 0.5 * (C + C.T), True, "", chi2, self.name)

@@ -1,0 +1,156 @@
+"""The online pipeline of the companion-computer bridge and of the log replay: one factory, one input convention.
+
+:func:`make_online_pipeline` builds the INS + map matcher + fuser (:class:`magnav_ins.pipeline.Pipeline`) that the
+bridge (:mod:`.bridge`) runs on the autopilot's stream and that ``magnav-ins replay`` (:mod:`.replay`) runs over a
+recording, so that a replay reproduces what the companion computer would have computed. Neither imports the other.
+
+:class:`OnlinePipeline` is that pipeline fed the way an autopilot feeds it:
+
+* IMU samples of a declared type (:data:`magnav_ins.ins.strapdown.SAMPLE_TYPES`): ``mean`` (rate over the interval
+  ending at ``t``, the mechanisation's own input; PX4 ``sensor_combined``), ``instantaneous`` (the filtered rate at
+  ``t``, ArduPilot's HIGHRES_IMU; turned into interval means by the trapezoid, :class:`~magnav_ins.ins.strapdown.
+  SampleMeans`) or ``increment``;
+* a static IMU correction (gyro and accelerometer biases, body FRD) measured before the run, e.g. by the bridge's
+  ground alignment, subtracted from every sample; the fuser estimates what is left;
+* external position fixes (the autopilot's own GNSS while it is healthy) through
+  :meth:`~magnav_ins.pipeline.Pipeline.push_fix`.
+
+Units: SI, body FRD, NED, as everywhere in the package.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..core.errors import ConfigError
+from ..core.types import NavEstimate, NavState
+from ..ins.strapdown import SampleMeans
+from ..pipeline import Pipeline
+
+#: IMU sample type the readers and the bridge assume when told ``auto``: ArduPilot's HIGHRES_IMU carries the
+#: latest filtered sample (instantaneous); PX4's HIGHRES_IMU and ``sensor_combined`` carry rates averaged over
+#: the sample interval (from the delta angles / velocities); a CSV recording is documented as interval means.
+AUTO_SAMPLE_TYPE = {"ardupilot": "instantaneous", "px4": "mean", "ulog": "mean", "csv": "mean", "other": "mean"}
+
+
+class OnlinePipeline(Pipeline):
+    """A :class:`~magnav_ins.pipeline.Pipeline` taking IMU samples of ``sample_type`` and removing a static bias
+    (``gyro_bias_b`` rad/s, ``accel_bias_b`` m/s^2, body FRD) before the fuser sees them (module docstring). Other
+    arguments as :class:`~magnav_ins.pipeline.Pipeline`."""
+
+    def __init__(
+        self,
+        fuser: Any,
+        matcher: Any = None,
+        fmap: Any = None,
+        *,
+        sample_type: str = "mean",
+        gyro_bias_b: np.ndarray | None = None,
+        accel_bias_b: np.ndarray | None = None,
+        **options: Any,
+    ) -> None:
+        super().__init__(fuser, matcher, fmap, **options)
+        self._means = SampleMeans(sample_type)
+        self.sample_type = sample_type
+        self._gyro_bias = np.zeros(3)
+        self._accel_bias = np.zeros(3)
+        self.set_static_bias(gyro_bias_b, accel_bias_b)
+
+    def set_static_bias(self, gyro_bias_b: np.ndarray | None, accel_bias_b: np.ndarray | None) -> None:
+        """Subtract these biases (rad/s, m/s^2, body FRD; None = zero) from every later sample."""
+        g = np.zeros(3) if gyro_bias_b is None else np.asarray(gyro_bias_b, float).reshape(3)
+        a = np.zeros(3) if accel_bias_b is None else np.asarray(accel_bias_b, float).reshape(3)
+        if not (np.all(np.isfinite(g)) and np.all(np.isfinite(a))):
+            raise ConfigError(f"static IMU bias must be finite, got gyro {g.tolist()}, accel {a.tolist()}")
+        self._gyro_bias, self._accel_bias = g, a
+
+    @property
+    def imu_bias(self) -> tuple[np.ndarray, np.ndarray]:
+        """The whole bias removed from the samples now: static part + the fuser's estimate (gyro rad/s,
+        accelerometer m/s^2, body FRD); what a restarted pipeline should start from."""
+        b_a, b_g = getattr(self.fuser, "bias", (np.zeros(3), np.zeros(3)))
+        return self._gyro_bias + np.asarray(b_g, float), self._accel_bias + np.asarray(b_a, float)
+
+    def forget_last_sample(self) -> None:
+        """After a gap: the next ``instantaneous`` sample has no previous one to average with."""
+        self._means.reset()
+
+    def push_imu(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray) -> None:
+        """One IMU sample of this pipeline's sample type at ``t`` (s): rad/s and m/s^2 (rad and m/s for
+        increments), body FRD."""
+        w, f = self._means.means(t, gyro_b, accel_b)
+        super().push_imu(t, w - self._gyro_bias, f - self._accel_bias)
+
+
+def make_online_pipeline(
+    nav0: NavState,
+    sigma_pos_m: float,
+    fmap: Any,
+    *,
+    grade: str = "tactical",
+    matcher: str | dict[str, Any] = "mlr",
+    fusion: str = "ukf",
+    reading_sigma: float = 5.0,
+    window: int = 30,
+    match_every: int = 10,
+    velocity_sigma_mps: float = 0.2,
+    attitude_sigma_rad: tuple[float, float, float] = (0.005, 0.005, 0.02),
+    altitude_hold: bool = True,
+    sample_type: str = "mean",
+    gyro_bias_b: np.ndarray | None = None,
+    accel_bias_b: np.ndarray | None = None,
+    fusion_options: dict[str, Any] | None = None,
+    rng: np.random.Generator | None = None,
+) -> OnlinePipeline:
+    """The online pipeline of the bridge and the replay, starting from ``nav0``.
+
+    ``sigma_pos_m``: 1-sigma of the initial north/east position (m; the down sigma is the same); ``fmap``: the map
+    (its ``kind`` is the readings' kind); ``grade``: IMU grade name (:func:`magnav_ins.ins.imu_models.get_grade`) for
+    the filter's noise and initial bias covariance; ``matcher``: a registry kind (``"mlr"``) or a full config dict
+    (:func:`magnav_ins.aiding.matchers.registry.build_matcher`), ``"none"`` for no matching; ``fusion``: ``ukf`` |
+    ``graph`` | ``free_inertial`` (:func:`magnav_ins.aiding.fusion.make_fuser`), with ``fusion_options`` for its
+    constructor; ``reading_sigma``: 1-sigma of a reading in the map's unit (sensor noise and uncompensated vehicle
+    field); ``window`` / ``match_every``: readings per batch-matcher window and between match attempts
+    (:class:`~magnav_ins.pipeline.Pipeline`); ``velocity_sigma_mps`` (m/s) and ``attitude_sigma_rad`` (roll, pitch,
+    yaw, rad): initial 1-sigmas; ``altitude_hold``: clamp the INS height to ``nav0.h`` (the free vertical channel
+    diverges in minutes); the bridge and the replay move the clamp to the barometric height when pressure arrives
+    (:func:`.baro.hold_height`); ``sample_type``, ``gyro_bias_b``, ``accel_bias_b``: :class:`OnlinePipeline`.
+    """
+    from ..aiding.fusion import ImuNoise, make_fuser
+    from ..aiding.matchers.registry import build_matcher
+    from ..ins.error_model import initial_covariance
+    from ..ins.imu_models import get_grade
+
+    if not (math.isfinite(sigma_pos_m) and sigma_pos_m > 0):
+        raise ConfigError(f"initial position sigma must be a positive number of metres, got {sigma_pos_m!r}")
+    g = get_grade(grade)
+    P0 = initial_covariance(g, sigma_pos_m, velocity_sigma_mps, np.asarray(attitude_sigma_rad, float))
+    if altitude_hold:
+        P0[2, :] = P0[:, 2] = 0.0  # height clamped: no vertical position / velocity error
+        P0[5, :] = P0[:, 5] = 0.0
+    init = NavEstimate(nav0, P0)
+    options: dict[str, Any] = dict(fusion_options or {})
+    if fusion in ("ukf", "free_inertial") and altitude_hold:
+        options.setdefault("altitude_hold", float(nav0.h))
+    fuser = make_fuser(fusion, init, ImuNoise.from_grade(g), **options)
+    m = None
+    if fusion != "free_inertial" and matcher not in (None, "none"):
+        m = build_matcher({"kind": matcher} if isinstance(matcher, str) else dict(matcher))
+    kind = getattr(fmap, "kind", None)
+    return OnlinePipeline(
+        fuser,
+        m,
+        fmap if m is not None else None,
+        sample_type=sample_type,
+        gyro_bias_b=gyro_bias_b,
+        accel_bias_b=accel_bias_b,
+        window=window,
+        match_every=match_every,
+        reading_sigma=float(reading_sigma),
+        reading_kind=kind,
+        height_aid=None,
+        rng=rng if rng is not None else np.random.default_rng(0),
+    )

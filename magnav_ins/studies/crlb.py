@@ -1,0 +1,85 @@
+"""The posterior Cramér-Rao bound of a study's flight: the limit column of the gravity comparison tables (issue 16).
+
+For the scenario's truth trajectory, IMU grade, initial INS errors, reading times, reading noise and map, the INS
+error state (LAYOUT_15) evolves linearly (:func:`magnav_ins.ins.error_model.system_matrices` along the truth,
+discretised over each step by :func:`~magnav_ins.ins.error_model.discretize`) and each reading ``z = m(p) + v``,
+``v ~ N(0, sigma^2)``, carries the Fisher information ``g g^T / sigma^2`` about the position error, ``g`` the map
+gradient (:meth:`GridMap.gradient_ne`, the gradient of the interpolant the readings are drawn from) at the true
+position. Because the truth is deterministic, this information needs no expectation over the state.
+:func:`magnav_ins.maps.variability.posterior_crlb` runs the recursion (Tichavsky et al. 1998; Bergman 1999 ch. 4);
+no estimator using these readings and this INS can have a smaller mean-square error (to first order). The vertical
+channel is held as the studies hold it (down position and velocity frozen).
+
+``metrics.json`` gets ``crlb_rms_horizontal_m`` (the RMS over the flight of ``sqrt(P_NN + P_EE)``, comparable with
+``rms_horizontal_m``) and ``crlb_final_horizontal_m`` (at the end).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+#: longest covariance step of the bound (s); readings fall on step ends
+CRLB_STEP_S = 10.0
+
+
+def flight_crlb(sc: Any, truth: Any, imu: Any, fmap: Any, step_s: float = CRLB_STEP_S) -> tuple[FloatArray, FloatArray]:
+    """The bound along the flight: times ``t`` (K+1,) s and horizontal ``sqrt(P_NN + P_EE)`` (K+1,) m.
+
+    ``sc`` a :class:`~magnav_ins.studies.scenario.Scenario`, ``truth`` its truth trajectory, ``imu`` the ideal IMU
+    along it (specific force for ``F``), ``fmap`` its map. Readings every ``sc.sensor.interval_s`` from
+    ``interval_s`` on (as :func:`magnav_ins.studies.model.simulate_readings`), only where the map covers the truth."""
+    from scipy.spatial.transform import Rotation
+
+    from ..ins.error_model import discretize, system_matrices
+    from ..ins.imu_models import get_grade
+    from ..maps.variability import fisher_information_ne, posterior_crlb
+    from .model import initial_estimate
+
+    grade = get_grade(sc.imu.grade)
+    P0 = np.asarray(initial_estimate(sc, truth.at(0)).P, float)
+    t0, t1 = float(truth.t[0]), float(truth.t[-1])
+    s = sc.sensor
+    t_read = np.arange(t0 + s.interval_s, t1 + 1e-9, s.interval_s)
+    # step ends: every reading time, and at most step_s apart
+    edges = [t0]
+    for tr in np.append(t_read, t1):
+        while tr - edges[-1] > step_s + 1e-9:
+            edges.append(edges[-1] + step_s)
+        if tr > edges[-1] + 1e-9:
+            edges.append(float(tr))
+    edges = np.asarray(edges)
+    C_all = Rotation.from_quat(truth.q_nb).as_matrix()
+    K = len(edges) - 1
+    Phi = np.empty((K, 15, 15))
+    Q = np.empty((K, 15, 15))
+    J = np.zeros((K, 15, 15))
+    for k in range(K):
+        i = min(int(np.searchsorted(truth.t, edges[k])), len(truth.t) - 1)
+        j = min(int(np.searchsorted(imu.t, edges[k], side="right")), len(imu.t) - 1)
+        F, G, Qc = system_matrices(truth.lat[i], truth.h[i], truth.v_n[i], C_all[i], imu.accel_b[j], grade)
+        Phi[k], Q[k] = discretize(F, G, Qc, float(edges[k + 1] - edges[k]))
+    at = np.searchsorted(edges, t_read - 1e-9) - 1  # step whose end is the reading
+    ok = (at >= 0) & (np.abs(edges[np.clip(at + 1, 0, K)] - t_read) < 1e-6)
+    lat = np.interp(t_read, truth.t, truth.lat)
+    lon = np.interp(t_read, truth.t, truth.lon)
+    g = np.asarray(fmap.gradient_ne(lat, lon), float)
+    g = g.reshape(len(t_read), -1, 2) if g.ndim == 3 else g.reshape(len(t_read), 1, 2)
+    good = ok & np.all(np.isfinite(g), axis=(1, 2)) & np.asarray(fmap.covers(lat, lon))
+    info = fisher_information_ne(g if g.shape[1] > 1 else g[:, 0, :], float(s.sigma))
+    for r in np.flatnonzero(good):
+        J[at[r], :2, :2] += info[r]
+    P = posterior_crlb(P0, Phi, Q, J, hold=(2, 5))
+    return edges, np.sqrt(P[:, 0, 0] + P[:, 1, 1])
+
+
+def crlb_metrics(t: FloatArray, sigma_h: FloatArray) -> dict[str, float]:
+    """``crlb_rms_horizontal_m`` (time-weighted RMS over the flight) and ``crlb_final_horizontal_m`` (m)."""
+    dt = np.diff(t)
+    mid2 = 0.5 * (sigma_h[1:] ** 2 + sigma_h[:-1] ** 2)
+    rms = float(np.sqrt(np.sum(mid2 * dt) / np.sum(dt))) if dt.size else float(sigma_h[-1])
+    return {"crlb_rms_horizontal_m": rms, "crlb_final_horizontal_m": float(sigma_h[-1])}

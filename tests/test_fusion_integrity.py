@@ -1,0 +1,208 @@
+"""Fault detection and exclusion, recovery and protection levels of every fuser (``aiding/fusion/integrity.py``).
+
+Scenario: the contract tests' 400 s flight with turns (tactical IMU, fixes every 10 s with a correlated 5 m
+covariance, a 5 m height aid; :mod:`test_fusion_contract`). The dangerous case of issue 13: 10 % of the fixes, drawn
+at random, displaced 500 m - 2 km in random directions while keeping their small covariance. Truth is known, so the
+protection level is checked against the true horizontal error at every 1 s epoch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from test_fusion_contract import H_SIGMA, noise, run_inputs, truth
+
+from magnav_ins.aiding.fusion import make_fuser
+from magnav_ins.aiding.fusion.integrity import FaultMonitor, hpl_fault_free, integrity_factor
+from magnav_ins.core.frames import meters_to_latlon
+from magnav_ins.core.types import LAYOUT_15, NavEstimate
+from magnav_ins.ins.error_model import nav_error
+
+FUSERS = ["ukf", "graph"]
+SEEDS = {"ukf": (0, 1, 2), "graph": (0, 1)}
+
+
+def displaced(fix, rng: np.random.Generator, lo_m: float = 500.0, hi_m: float = 2000.0):
+    """``fix`` moved lo..hi m in a random direction, its (small) covariance kept."""
+    d = rng.uniform(lo_m, hi_m)
+    b = rng.uniform(0.0, 2.0 * np.pi)
+    dlat, dlon = meters_to_latlon(d * np.cos(b), d * np.sin(b), fix.lat)
+    return dataclasses.replace(fix, lat=fix.lat + float(dlat), lon=fix.lon + float(dlon), source="faulty")
+
+
+def fly_epochs(kind: str, seed: int, faulty: set[int], *, init_offset_m: float = 0.0, rng_seed: int = 99):
+    """Run ``kind`` over the contract flight with the fixes of index ``faulty`` displaced; returns the fuser, the
+    true horizontal error and the HPL at every 1 s epoch, and the indices of the displaced fixes."""
+    traj, _ = truth()
+    init, imu, fixes = run_inputs(seed)
+    if init_offset_m:
+        dlat, dlon = meters_to_latlon(init_offset_m, 0.0, init.nav.lat)
+        nav = dataclasses.replace(init.nav, lat=init.nav.lat + float(dlat), lon=init.nav.lon + float(dlon))
+        init = NavEstimate(nav, init.P, LAYOUT_15)
+    rng = np.random.default_rng(rng_seed + seed)
+    fuser = make_fuser(kind, init, noise())
+    todo = [(f, h, n in faulty) for n, (f, h) in enumerate(fixes)]
+    todo = [(displaced(f, rng) if bad else f, h, bad) for f, h, bad in todo]
+    err, hpl = [], []
+    i = 0
+    q = 0
+    for t_ep in np.arange(1.0, float(imu.t[-1]) + 1e-9, 1.0):
+        while q < len(todo) and todo[q][0].t <= t_ep + 1e-9:
+            f, h, _ = todo[q]
+            j = int(np.searchsorted(imu.t, f.t + 1e-9, side="right"))
+            fuser.propagate(imu.slice(i, j))
+            i = j
+            fuser.correct(f, height_m=h, height_sigma_m=H_SIGMA)
+            q += 1
+        j = int(np.searchsorted(imu.t, t_ep + 1e-9, side="right"))
+        fuser.propagate(imu.slice(i, j))
+        i = j
+        est = fuser.estimate()
+        k = int(np.argmin(np.abs(traj.t - est.nav.t)))
+        err.append(float(np.hypot(*nav_error(est.nav, traj.at(k))[:2])))
+        hpl.append(est.hpl_m)
+    return fuser, np.array(err), np.array(hpl), [inn for inn in fuser.innovations]
+
+
+@pytest.mark.parametrize("kind", FUSERS)
+def test_displaced_fixes_with_small_sigmas_are_excluded_and_hpl_holds(kind: str) -> None:
+    n_fixes = len(run_inputs(0)[2])
+    errs, hpls, n_false = [], [], 0
+    for seed in SEEDS[kind]:
+        faulty = set(np.random.default_rng(500 + seed).choice(n_fixes, n_fixes // 10, replace=False).tolist())
+        fuser, err, hpl, inns = fly_epochs(kind, seed, faulty)
+        bad = [inn for inn in inns if inn.source == "faulty"]
+        assert len(bad) == len(faulty) == n_fixes // 10
+        for inn in bad:  # every displaced fix excluded, and it says so
+            assert not inn.accepted, (kind, seed, inn)
+            assert inn.extra.get("fault") == 1.0 and ("NIS" in inn.reason), inn.reason
+        n_false += sum(1 for inn in inns if inn.source != "faulty" and not inn.accepted)
+        assert fuser.monitor.n_faults >= len(faulty) and fuser.monitor.n_recoveries == 0
+        assert np.all(np.isfinite(hpl)) and np.all(hpl > 0)
+        errs.append(err)
+        hpls.append(hpl)
+    err, hpl = np.concatenate(errs), np.concatenate(hpls)
+    exceed = float(np.mean(err > hpl))
+    assert exceed <= 0.01, f"{kind}: HPL exceeded at {exceed:.1%} of epochs"
+    assert n_false <= 1, f"{kind}: {n_false} good fixes excluded"
+    assert np.max(err) < 60.0  # no displaced fix pulled the solution
+    # the protection level is a bound, not a blanket: its median stays within a few tens of metres here
+    assert np.median(hpl) < 150.0, np.median(hpl)
+
+
+@pytest.mark.parametrize("kind", FUSERS)
+def test_consecutive_faults_are_never_re_accepted(kind: str) -> None:
+    """Six displaced fixes in a row, in random directions: the old rule re-accepted the fourth; the mutual-
+    consistency test must not, and the HPL must cover the filter while it cannot tell who is wrong."""
+    fuser, err, hpl, inns = fly_epochs(kind, 4, set(range(15, 21)))
+    bad = [inn for inn in inns if inn.source == "faulty"]
+    assert len(bad) == 6 and not any(inn.accepted for inn in bad)
+    assert fuser.monitor.n_recoveries == 0
+    assert np.mean(err > hpl) <= 0.01 and np.max(err) < 60.0
+    # while the faults were unresolved the protection level covered the hypothesis "the filter is wrong"
+    assert np.max(hpl[150:215]) > 500.0
+
+
+@pytest.mark.parametrize("kind", FUSERS)
+def test_lost_filter_recovers_on_consistent_fixes(kind: str) -> None:
+    """A filter started 1.5 km off with a 10 m sigma rejects the (correct) fixes; three mutually consistent ones
+    make it recover, and the protection level covers it from the first fix on."""
+    fuser, err, hpl, inns = fly_epochs(kind, 5, set(), init_offset_m=1500.0)
+    assert fuser.monitor.n_recoveries >= 1
+    rec = [inn for inn in inns if inn.accepted and inn.extra.get("recovery")]
+    assert rec and rec[0].extra["recovery"] >= 3 and rec[0].extra.get("inflation", 0.0) > 1.0
+    assert err[-100:].max() < 60.0, err[-100:].max()
+    t_first = int(inns[0].t)  # before any fix nothing can tell the filter it is off
+    assert np.mean(err[t_first:] > hpl[t_first:]) <= 0.01
+
+
+def test_monitor_units() -> None:
+    # K for 1e-3: a circular 2-D Gaussian exceeds K sigma with probability exactly exp(-K^2/2)
+    assert integrity_factor(1e-3) == pytest.approx(math.sqrt(2.0 * math.log(1e3)), rel=1e-12)
+    P = np.array([[900.0, 300.0], [300.0, 400.0]])
+    lam = np.linalg.eigvalsh(P).max()
+    assert hpl_fault_free(P, 1e-3) == pytest.approx(integrity_factor(1e-3) * math.sqrt(lam), rel=1e-12)
+    e = np.random.default_rng(0).multivariate_normal([0, 0], np.eye(2) * 100.0, 400_000)
+    assert np.mean(np.hypot(e[:, 0], e[:, 1]) > hpl_fault_free(np.eye(2) * 100.0, 0.01)) == pytest.approx(
+        0.01, rel=0.05
+    )
+    # consistent excluded fixes -> recovery; scattered ones -> never
+    R = np.eye(2) * 25.0
+    Pf = np.eye(2) * 100.0
+    m = FaultMonitor(0.9999, reset_after=3)
+    # the filter is 800 m off; its covariance grows 30 m (1-sigma) between fixes, and so may the residual
+    v = [m.assess(t, np.array([800.0, -300.0]) + 3.0 * t, Pf * (1 + t) + R, R, Pf * (1 + t)) for t in (0.0, 10.0, 20.0)]
+    assert [x.action for x in v] == ["reject", "reject", "recover"] and v[2].extra["recovery"] == 3.0
+    m = FaultMonitor(0.9999, reset_after=3)
+    rng = np.random.default_rng(1)
+    acts = [m.assess(10.0 * k, rng.uniform(-2000, 2000, 2), Pf + R, R, Pf).action for k in range(12)]
+    assert set(acts) == {"reject"}
+    assert m.hpl(Pf) > 1000.0  # the doubt of unresolved exclusions
+    # the window test: four fixes each inside the gate, together too far out
+    m = FaultMonitor(0.9999, window=4)
+    S = np.eye(2) * 100.0
+    verdicts = []
+    for t in range(3):
+        vd = m.assess(float(t), np.array([30.0, 0.0]), S, R, Pf)  # NIS 9 each (gate 18.4)
+        verdicts.append(vd)
+        if vd.action == "accept":
+            m.accepted(float(t), 9.0, Pf, Pf * 0.8)
+    # 9 + 9 = 18 <= 18.47 (4 dof, 0.999); 27 > 22.46 (6 dof)
+    assert [x.action for x in verdicts] == ["accept", "accept", "reject"]
+    assert verdicts[2].reason.startswith("window NIS 27.0 over 3 fixes") and verdicts[2].extra["fault"] == 1.0
+
+
+def test_free_inertial_hpl_is_its_covariance() -> None:
+    init, imu, _ = run_inputs(0)
+    f = make_fuser("free_inertial", init, noise())
+    f.propagate(imu.slice(0, 2000))
+    est = f.estimate()
+    assert est.hpl_m == pytest.approx(hpl_fault_free(est.cov_ne, est.integrity_risk), rel=1e-12)
+
+
+def test_ukf_takes_a_prior_with_exactly_known_states() -> None:
+    """The bridge and the replay clamp the height and give it zero variance (issue 18 item 1: "6-th leading minor
+    not positive definite"); the sigma points must not need a positive definite covariance."""
+    init, imu, fixes = run_inputs(0)
+    P0 = np.array(init.P)
+    P0[2, :] = P0[:, 2] = P0[5, :] = P0[:, 5] = 0.0
+    f = make_fuser("ukf", NavEstimate(init.nav, P0, LAYOUT_15), noise(), altitude_hold=float(init.nav.h))
+    for fix, _ in fixes[:5]:
+        f.propagate(imu.slice(0, int(np.searchsorted(imu.t, fix.t + 1e-9, side="right"))))
+        assert f.correct(fix).accepted
+    P = f.estimate().P
+    assert abs(P[2, 2]) < 1e-12 and abs(P[5, 5]) < 1e-12 and np.all(np.isfinite(P))  # held: round-off only
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("fusion", ["ukf", "graph", "free_inertial"])
+def test_replay_sample_ulg_with_init_runs_with_every_fuser(shared_data, tmp_path, fusion: str) -> None:
+    log = shared_data / "px4_ulog" / "sample.ulg"
+    out = tmp_path / "rp.csv"
+    cmd = [sys.executable, "-m", "magnav_ins.cli", "replay", str(log), "--map", "builtin:osborne-magnetic",
+           "--init", "-21.9,140.6,400,0", "--fusion", fusion, "--duration", "20", "--out", str(out)]  # fmt: skip
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    rows = out.read_text().splitlines()
+    assert len(rows) > 90 and "Traceback" not in res.stderr
+
+
+def test_fuser_options_match_the_constructors() -> None:
+    import inspect
+
+    from magnav_ins.aiding.fusion import FUSER_OPTIONS
+    from magnav_ins.aiding.fusion.common import InertialCore
+    from magnav_ins.aiding.fusion.graph import GraphFuser
+    from magnav_ins.aiding.fusion.ukf import UkfFuser
+
+    def kw(cls) -> set[str]:
+        return {n for n, p in inspect.signature(cls.__init__).parameters.items() if p.kind is p.KEYWORD_ONLY}
+
+    assert set(FUSER_OPTIONS["ukf"]) == kw(UkfFuser)
+    assert set(FUSER_OPTIONS["graph"]) == kw(GraphFuser)
+    assert set(FUSER_OPTIONS["free_inertial"]) == kw(InertialCore) | {"gate_probability"}

@@ -1,0 +1,151 @@
+"""The classic gravity-matching baselines (TERCOM, ICCP, point-mass filter) on synthetic maps with a known truth.
+
+Analytic truth: the INS track is the true track shifted by a known offset (and, for ICCP, rotated by a known
+angle about its centroid); the matcher must return the true last position, i.e. take the offset off. Consistency:
+over 30 trials with random offsets drawn from the prior, the fixes' mean NEES lies in [1, 4] (2 for a consistent
+2-D fix; see tests/test_matchers_contract.py for the band's reasoning).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from matcher_scenarios import KIND_G, ORIGIN, flat_like, latlon, local, make_window, nav_estimate
+
+from magnav_ins.aiding.matchers import build_matcher
+from magnav_ins.aiding.matchers.iccp import contour_points, rigid_fit
+from magnav_ins.core.types import FieldReadings
+from magnav_ins.maps.synthetic import random_field_map
+
+T, DT, SIG, PS = 30, 10.0, 0.5, 50.0  # readings, s, mGal, prior sigma m
+
+
+@pytest.fixture(scope="module")
+def gmap():
+    """A 7 km square gravity field (20 mGal, 300 m correlation, 10 m nodes); the readings are drawn from this very
+    map, so its error layer is exactly zero."""
+    fmap = random_field_map((700, 700), 10.0, 300.0, 20.0, np.random.default_rng(11), kind=KIND_G, origin=ORIGIN)
+    return fmap.with_error_layer(0.0, correlation_m=10.0, source="exact: the readings are drawn from this map")
+
+
+def _track(rng, heading=None):
+    head = rng.uniform(0, 2 * np.pi) if heading is None else heading
+    v = 15.0 * np.array([np.cos(head), np.sin(head)])
+    start = np.array([3500.0, 3500.0]) - v * DT * (T - 1) / 2 + rng.uniform(-300, 300, 2)
+    return start + v * DT * np.arange(T)[:, None], v
+
+
+def _batch_trial(m, fmap, rng, offset=None, rot=0.0, nan=False):
+    true_ne, v = _track(rng)
+    lat, lon = latlon(fmap, true_ne[:, 0], true_ne[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0.0, SIG, T)
+    if nan:
+        z[:] = np.nan
+    P = np.eye(2) * PS**2
+    off = rng.multivariate_normal([0, 0], P) if offset is None else np.asarray(offset, float)
+    ins = true_ne
+    if rot:
+        c = true_ne.mean(axis=0)
+        R = np.array([[np.cos(rot), -np.sin(rot)], [np.sin(rot), np.cos(rot)]])
+        ins = (true_ne - c) @ R.T + c
+    w = make_window(fmap, DT * np.arange(T), ins, z, SIG, KIND_G, off, P, v)
+    return m.match(w, fmap), true_ne[-1], ins[-1] + off
+
+
+def _pmf_trial(m, fmap, rng, offset=None, nan=False):
+    true_ne, v = _track(rng)
+    P = np.eye(2) * PS**2
+    off = rng.multivariate_normal([0, 0], P) if offset is None else np.asarray(offset, float)
+    st = None
+    for k in range(T):
+        est = nav_estimate(fmap, k * DT, true_ne[k] + off, v, P)
+        st = m.initiate(est) if st is None else m.predict(st, est)
+        lat, lon = latlon(fmap, true_ne[k, 0], true_ne[k, 1])
+        z = fmap.value(lat, lon) + rng.normal(0.0, SIG, 1)
+        if nan:
+            z[:] = np.nan
+        st = m.update(st, FieldReadings(np.array([k * DT]), z, SIG, KIND_G), fmap)
+    return m.to_fix(st), true_ne[-1], true_ne[-1] + off
+
+
+KINDS = {
+    "tercom": ({"kind": "tercom", "batch": T}, _batch_trial),
+    "tercom_msd": ({"kind": "tercom", "batch": T, "criterion": "msd"}, _batch_trial),
+    "iccp": ({"kind": "iccp", "batch": T}, _batch_trial),
+    "pmf": ({"kind": "pmf"}, _pmf_trial),
+}
+
+
+@pytest.mark.parametrize("name", sorted(KINDS))
+def test_recovers_a_known_offset(gmap, name):
+    cfg, trial = KINDS[name]
+    m = build_matcher(cfg)
+    offset = np.array([120.0, -80.0])  # 2.9 prior sigmas: well away from the INS position, inside the gate
+    fix, truth, ins_last = trial(m, gmap, np.random.default_rng(7), offset=offset)
+    assert fix.available, fix.reason
+    d = local(gmap, fix.lat, fix.lon) - truth
+    sig = np.sqrt(np.linalg.eigvalsh(fix.cov_ne))
+    assert np.hypot(*d) < 3.0 * sig[-1] + 1.0, (d, sig)
+    assert np.hypot(*d) < 10.0, d  # the offset (144 m) is taken off to within a few metres
+    # the correction the fix asks for is the offset
+    corr = local(gmap, fix.lat, fix.lon) - ins_last
+    assert np.allclose(corr, -offset, atol=10.0), corr
+
+
+def test_iccp_recovers_a_rotation(gmap):
+    """ICCP's rigid transform: the INS track rotated by 0.02 rad about its centroid and shifted (60, 40) m."""
+    m = build_matcher({"kind": "iccp", "batch": T})
+    fix, truth, _ = _batch_trial(m, gmap, np.random.default_rng(8), offset=[60.0, 40.0], rot=0.02)
+    assert fix.available, fix.reason
+    d = local(gmap, fix.lat, fix.lon) - truth
+    assert np.hypot(*d) < 10.0, d
+
+
+@pytest.mark.parametrize("name", sorted(KINDS))
+def test_fix_nees_consistent(gmap, name):
+    cfg, trial = KINDS[name]
+    m = build_matcher(cfg)
+    rng = np.random.default_rng(3)
+    nees, errs = [], []
+    for _ in range(30):
+        fix, truth, _ = trial(m, gmap, rng)
+        if not fix.available:
+            assert fix.reason
+            continue
+        d = local(gmap, fix.lat, fix.lon) - truth
+        nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
+        errs.append(float(np.hypot(*d)))
+    assert len(nees) >= 24, f"{name}: {len(nees)} fixes of 30"
+    assert 1.0 <= np.mean(nees) <= 4.0, f"{name}: fix NEES {np.mean(nees):.2f}"
+    assert np.median(errs) < 10.0, f"{name}: median error {np.median(errs):.1f} m (prior sigma {PS} m)"
+
+
+@pytest.mark.parametrize("name", sorted(KINDS))
+def test_no_fix_on_a_flat_map_or_nan(gmap, name):
+    cfg, trial = KINDS[name]
+    m = build_matcher(cfg)
+    fix, _, _ = trial(m, flat_like(gmap), np.random.default_rng(4))
+    assert not fix.available and "flat map" in fix.reason, fix.reason
+    fix, _, _ = trial(build_matcher(cfg), gmap, np.random.default_rng(5), nan=True)
+    assert not fix.available and "nan" in fix.reason.lower(), fix.reason
+
+
+@pytest.mark.parametrize("name", sorted(KINDS))
+def test_no_fix_off_the_map(gmap, name):
+    cfg, trial = KINDS[name]
+    fix, _, _ = trial(build_matcher(cfg), gmap, np.random.default_rng(6), offset=[5e4, 0.0])
+    assert not fix.available and "off the map" in fix.reason, fix.reason
+
+
+def test_contour_points_and_rigid_fit_analytic():
+    """Level crossings of a linear field lie on its straight level line; Procrustes recovers a known motion."""
+    an, ae = np.linspace(-50, 50, 11), np.linspace(-50, 50, 11)
+    GN, GE = np.meshgrid(an, ae, indexing="ij")
+    pts = contour_points(an, ae, 2.0 * GN + 1.0 * GE, 10.0)
+    assert len(pts) > 5 and np.allclose(2.0 * pts[:, 0] + pts[:, 1], 10.0)
+    rng = np.random.default_rng(1)
+    a = rng.normal(0, 100, (20, 2))
+    th = 0.3
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    theta, tr = rigid_fit(a, a @ R.T + [5.0, -7.0], rotation=True)
+    assert abs(theta - th) < 1e-12 and np.allclose(tr, [5.0, -7.0])
