@@ -176,7 +176,7 @@ def test_ukf_takes_a_prior_with_exactly_known_states() -> None:
         f.propagate(imu.slice(0, int(np.searchsorted(imu.t, fix.t + 1e-9, side="right"))))
         assert f.correct(fix).accepted
     P = f.estimate().P
-    assert P[2, 2] == 0.0 and P[5, 5] == 0.0 and np.all(np.isfinite(P))
+    assert abs(P[2, 2]) < 1e-12 and abs(P[5, 5]) < 1e-12 and np.all(np.isfinite(P))  # held: round-off only
 
 
 @pytest.mark.shared_data

@@ -29,7 +29,7 @@ DESIGN_KEYS = {
     "availability",
     "nees_mean",
 }
-EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons"}
+EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons", "rms_after_first_fix_m"}
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,7 @@ class StandInModel:
     n: int = 200
     sigma_aided_m: float = 5.0
     fail_at_run: int = -1
+    availability: float = 0.8
 
     def estimator_names(self) -> tuple[str, ...]:
         return ("aided", "free_inertial")
@@ -61,7 +62,12 @@ class StandInModel:
         al, ao = offset(an, ae)
         cov = np.broadcast_to(np.diag([s**2, s**2]), (self.n, 2, 2)).copy()
         fix_t = t[::10]
-        avail = rng.random(len(fix_t)) < 0.8
+        avail = rng.random(len(fix_t)) < self.availability
+        # two kinds of "no fix", with numbers in them that must not split the count
+        reasons = tuple(
+            "" if ok else (f"flat map: variability {0.01 * k:.2f} < 0.3" if k % 2 else f"ambiguous peak: ratio 1.{k}")
+            for k, ok in enumerate(avail)
+        )
         fn, fe = rng.normal(0, 2.0, len(fix_t)), rng.normal(0, 2.0, len(fix_t))
         fdlat, fdlon = meters_to_latlon(fn, fe, lat[::10])
         fix_lat = np.where(avail, lat[::10] + fdlat, np.nan)
@@ -72,7 +78,7 @@ class StandInModel:
             lat,
             lon,
             (
-                EstimatorOutput("aided", "ml", "ukf", al, ao, cov, fix_t, fix_lat, fix_lon, fix_cov, avail),
+                EstimatorOutput("aided", "ml", "ukf", al, ao, cov, fix_t, fix_lat, fix_lon, fix_cov, avail, reasons),
                 EstimatorOutput("free_inertial", None, "free_inertial", fl, fo),
             ),
         )
@@ -86,7 +92,8 @@ def test_metrics_json_keys_and_values(tmp_path):
     doc = runner.run_study(StandInModel(), runs=4, seed=7, out_dir=tmp_path)
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
     assert _strip(on_disk) == _strip(doc)
-    assert set(on_disk) == {"name", "estimators", "free_inertial", "runs", "seed", "wall_s"}
+    assert set(on_disk) == {"name", "estimators", "free_inertial", "runs", "seed", "wall_s", "warnings"}
+    assert on_disk["warnings"] == []
     assert on_disk["runs"] == 4 and on_disk["seed"] == 7
     assert set(on_disk["estimators"]) == {"aided"}
     aided = on_disk["estimators"]["aided"]
@@ -108,6 +115,26 @@ def test_metrics_json_keys_and_values(tmp_path):
     for f in ("runs.nc", "report.md", "track.png", "error_vs_time.png", "error_cdf.png", "free_inertial.png"):
         assert (tmp_path / f).stat().st_size > 0, f
     assert not list(tmp_path.glob(".*part"))
+
+
+def test_no_fix_reasons_counted_and_warned(tmp_path):
+    doc = runner.run_study(StandInModel(), runs=3, seed=2)
+    m = doc["estimators"]["aided"]
+    reasons = m["no_fix_reasons"]
+    # every "no fix" is counted once, under its reason without the numbers
+    assert set(reasons) <= {"flat map", "ambiguous peak"}
+    assert sum(reasons.values()) == m["fix_attempts"] - m["fixes_issued"] > 0
+    assert doc["warnings"] == []
+    # no fix at all: the study says so, with the reasons, in metrics.json and report.md
+    doc = runner.run_study(StandInModel(availability=0.0), runs=2, seed=2, out_dir=tmp_path, plots=False)
+    m = doc["estimators"]["aided"]
+    assert m["fixes_issued"] == 0 and m["availability"] == 0.0
+    assert sum(m["no_fix_reasons"].values()) == m["fix_attempts"] == 40
+    [line] = doc["warnings"]
+    assert f"0 of {m['fix_attempts']} fix attempts gave a fix" in line and "flat map x" in line
+    assert "ambiguous peak x" in line
+    assert line in (tmp_path / "report.md").read_text()
+    assert json.loads((tmp_path / "metrics.json").read_text())["warnings"] == [line]
 
 
 def test_seeds_independent_of_jobs():

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from ..core.errors import warn
 from ..core.types import FieldKind
 
 
@@ -91,10 +92,11 @@ def log_to_stderr(args: argparse.Namespace) -> None:
 
 
 def load(args: argparse.Namespace, spec: str) -> Any:
+    from ..core.plausibility import field_values_problem
     from ..maps.io import load_map, parse_column_mapping
 
     log_to_stderr(args)
-    return load_map(
+    fmap = load_map(
         spec,
         grid_spacing_m=args.spacing,
         kind=args.kind,
@@ -111,3 +113,7 @@ def load(args: argparse.Namespace, spec: str) -> Any:
         error_sigma=getattr(args, "map_error_sigma", None),
         error_correlation_m=getattr(args, "map_error_correlation_m", None),
     )
+    problem = field_values_problem(fmap.values, fmap.kind) if hasattr(fmap, "values") else None
+    if problem:  # inspection goes on; navigating on it ('run') is refused
+        warn(f"{spec}: implausible for {fmap.kind.value}: {problem}")
+    return fmap

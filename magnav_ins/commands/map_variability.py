@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.atomic import atomic_path
+from ..core.atomic import atomic_path, check_output_file
 from ..core.errors import InputError
 from ..core.units import RAD_TO_DEG
 from .map_options import load, map_options
@@ -146,6 +146,8 @@ def write_png(path: Path, fmap: Any, rasters: dict[str, tuple[np.ndarray, str, s
 def run(args: argparse.Namespace) -> int:
     if not np.isfinite(args.window) or args.window <= 0:
         raise InputError(f"--window: expected a positive width in metres, got {args.window!r}")
+    check_output_file(args.out)
+    check_output_file(Path(args.out).with_suffix(".png"), option="--out (its PNG)")
     fmap = load(args, args.map)
     if not hasattr(fmap, "axes"):
         raise InputError(f"{args.map}: variability rasters need a gridded map, got {type(fmap).__name__}")

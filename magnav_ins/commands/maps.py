@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.atomic import atomic_path
+from ..core.atomic import atomic_path, check_output_file
 from ..core.errors import InputError
 from ..core.types import FieldKind
 from ..core.units import DEG_TO_RAD, RAD_TO_DEG
@@ -214,7 +214,7 @@ def run_grid(args: argparse.Namespace) -> int:
     log_to_stderr(args)
     exclude = _parse_ids(args.exclude_lines)
     src = Path(args.survey)
-    out = Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc")
+    out = check_output_file(Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc"))
     t0 = time.perf_counter()
     survey = read_survey(
         src,
@@ -405,6 +405,7 @@ def read_points(path: str | Path) -> Any:
 
 
 def run_sample(args: argparse.Namespace) -> int:
+    check_output_file(args.out)
     fmap = load(args, args.map)
     df = read_points(args.points)
     lat = df["lat_deg"].to_numpy(dtype=float) * DEG_TO_RAD

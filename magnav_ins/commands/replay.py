@@ -17,7 +17,7 @@ import json
 import math
 from pathlib import Path
 
-from ..core.atomic import write_text_atomic
+from ..core.atomic import check_output_file, write_text_atomic
 from ..core.errors import ConfigError
 
 
@@ -115,6 +115,9 @@ def run(args: argparse.Namespace) -> int:
     from ..mavlink.replay import read_log, replay, write_trajectory
 
     init = parse_init(args.init)
+    for option, path in (("--out", args.out), ("--summary-json", args.summary_json)):
+        if path is not None:
+            check_output_file(path, option)  # before the replay, not after it
     for name in ("init_sigma", "reading_sigma", "output_interval"):
         v = getattr(args, name)
         if not (math.isfinite(v) and v > 0):

@@ -282,11 +282,14 @@ def read_map(
     dims = list(da.dims)
     if frame is None:
         frame = "geodetic" if {"latitude", "longitude"} <= set(dims) or {"lat", "lon"} <= set(dims) else None
+        # metres with a CRS (UTM & co.): used in that CRS (a local tangent plane would misplace it)
+        if frame is None and "crs" in ds.attrs and ({"y", "x"} <= set(dims) or {"northing", "easting"} <= set(dims)):
+            frame = "projected"
     if frame == "geodetic":
         ydim = "latitude" if "latitude" in dims else "lat"
         xdim = "longitude" if "longitude" in dims else "lon"
     elif frame in ("local", "projected"):
-        ydim, xdim = "northing", "easting"
+        ydim, xdim = ("y", "x") if frame == "projected" and "y" in dims else ("northing", "easting")
     else:
         raise MapError(
             f"{path}: cannot tell the frame; set global attribute magnav_frame='geodetic', 'local' or 'projected'"
@@ -313,6 +316,11 @@ def read_map(
     vals = np.asarray(da.values, dtype=float)
     if alt_da is not None:
         alt = np.asarray(alt_da.values, dtype=float)
+    if frame == "geodetic" and x.size > 2:
+        wraps = np.flatnonzero(np.diff(x) < -180.0)
+        if len(wraps) == 1:  # an axis wrapped at the antimeridian (..., 179.9, -179.9, ...): make it continuous
+            x = x.copy()
+            x[wraps[0] + 1 :] += 360.0
     if y.size > 1 and y[1] < y[0]:
         y, vals = y[::-1], vals[::-1]
         alt = alt[::-1] if np.ndim(alt) else alt
@@ -357,6 +365,23 @@ def read_map(
         )
     except MapError as exc:
         raise MapError(f"{path}: {exc}") from None
+
+
+#: the first bytes of a NetCDF file: classic / 64-bit offset / CDF-5, or NetCDF-4 (HDF5)
+_NETCDF_MAGIC = (b"CDF\x01", b"CDF\x02", b"CDF\x05", b"\x89HDF\r\n\x1a\n")
+
+
+def _check_netcdf_signature(path: Path) -> None:
+    """One clear line for a file that is not NetCDF at all (xarray's own message lists its IO backends)."""
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(8)
+    except OSError as exc:
+        raise MapError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    if not head:
+        raise MapError(f"{path}: the file is empty; expected a NetCDF map")
+    if not head.startswith(_NETCDF_MAGIC):
+        raise MapError(f"{path}: not a NetCDF file (no NetCDF or HDF5 signature); expected a NetCDF map")
 
 
 def _norm(s: str) -> str:

@@ -21,6 +21,10 @@ Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
   baseline itself is tested against itself, so it "diverges" whenever its error doubles between the quarters.
   ``divergence_rate`` is the fraction of runs that diverge.
 
+* ``rms_after_first_fix_m``: the ensemble horizontal RMS from each run's first accepted fix on (the samples at or
+  after the time the fuser first applied a fix, pooled over the runs that had one; Storms 2009 Figs. 4.12-4.13 plot
+  the ensemble RMS "once the initial positioning error is resolved"); ``null`` when no run accepted a fix.
+
 Besides DESIGN.md's keys each entry holds ``fix_error_bins`` (the four bins above), ``fix_within_3m_fraction``,
 ``fix_attempts``, ``fixes_issued``, ``no_fix_reasons`` (how often each class of "no fix" reason occurred over all
 runs, the text before the reason's first colon: "flat map", "diverged", ...; added by :mod:`.runner`) and
@@ -124,6 +128,18 @@ class RunMetrics:
     fix_errors_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     fix_attempts: int = 0
     divergent: bool = False
+    first_fix_index: int | None = None
+
+
+def first_fix_index(t: ArrayLike, fix_t: ArrayLike, fix_accepted: ArrayLike) -> int | None:
+    """Index of the first sample of the time base ``t`` (s) at or after the first accepted fix (``fix_t`` s with
+    ``fix_accepted`` flags); None when no fix was accepted or the flags are unknown (empty)."""
+    ft = np.asarray(fix_t, float)
+    ok = np.asarray(fix_accepted, bool)
+    if ok.size == 0 or ok.size != ft.size or not ok.any():
+        return None
+    k = int(np.searchsorted(np.asarray(t, float), float(ft[ok].min()) - 1e-9, side="left"))
+    return k if k < len(np.asarray(t)) else None
 
 
 def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[str, Any]:
@@ -153,8 +169,17 @@ def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[
         "fix_error_bins": {k: _f(v) for k, v in bins.items()},
         "fix_within_3m_fraction": _f(bins["lt_3m"]),
         "non_finite_fraction": float(1.0 - fin.mean()) if E.size else 0.0,
+        "rms_after_first_fix_m": _rms_after_first_fix(runs),
     }
     return out
+
+
+def _rms_after_first_fix(runs: list[RunMetrics]) -> float | None:
+    """``rms_after_first_fix_m`` (module docstring)."""
+    parts = [r.e[r.first_fix_index :] for r in runs if r.first_fix_index is not None]
+    e = np.concatenate(parts) if parts else np.zeros(0)
+    e = e[np.isfinite(e)]
+    return _f(np.sqrt(np.mean(e**2))) if e.size else None
 
 
 def _f(x: Any) -> float | None:

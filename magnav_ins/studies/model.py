@@ -2,7 +2,9 @@
 
 Per run (seed sequence ``ss``, see :mod:`.runner`), three independent generators are derived without mutating
 ``ss``: ``child(ss, 0)`` draws the IMU errors (``ins.imu_models.corrupt``), ``child(ss, 1)`` the initial INS errors,
-``child(ss, 2)`` the sensor noise; ``child(ss, 10 + j)`` is handed to estimator ``j`` (for randomised matchers).
+``child(ss, 2)`` the sensor noise; ``child(ss, 10 + j)`` is handed to estimator ``j`` (for randomised matchers);
+``child(ss, 3)`` draws the run's own truth where the trajectory wanders (a ``ground_path`` with ``wander``: Storms'
+random trajectories, then the ideal IMU is computed per run).
 An estimator with its own ``imu_grade`` other than ``[imu] grade`` flies an IMU corrupted with that grade's errors
 drawn from :func:`grade_seed` (``child(child(ss, 0), crc32(grade))``): derived from the run's seed and the grade's
 name only, so estimators of one grade share one draw and results do not depend on the estimator order or ``--jobs``.
@@ -72,6 +74,8 @@ def build_truth(sc: Scenario) -> NavTrajectory:
         elif tr.kind == "waypoints":
             pts = np.array([(la * DEG_TO_RAD, lo * DEG_TO_RAD, tr.altitude_m) for la, lo in tr.points_deg])  # type: ignore[union-attr]
             traj = simulate.waypoints(pts, tr.speed_mps, rate)
+        elif tr.kind == "ground_path":
+            traj = ground_path_truth(sc)
         elif tr.kind == "survey_line":
             line = survey_line_points(sc)
             if len(np.unique(line["line"])) > 1:
@@ -90,6 +94,26 @@ def build_truth(sc: Scenario) -> NavTrajectory:
         n = int(np.searchsorted(traj.t, traj.t[0] + tr.duration_s, side="right"))
         traj = traj.slice(0, max(n, 2))
     return traj
+
+
+def ground_path_truth(sc: Scenario, rng: np.random.Generator | None = None) -> NavTrajectory:
+    """A ``ground_path`` trajectory (:func:`magnav_ins.ins.ground_path.ground_path`): the nominal path, or with
+    ``rng`` and a ``wander`` table one of Storms' random trajectories about it (drawn per run)."""
+    from ..ins.ground_path import Wander, ground_path
+
+    tr = sc.trajectory
+    la, lo = tr.origin_deg  # type: ignore[misc]
+    origin = (la * DEG_TO_RAD, lo * DEG_TO_RAD, float(tr.altitude_m or 0.0))
+    wander = Wander(**tr.wander) if (tr.wander is not None and rng is not None) else None
+    return ground_path(
+        tr.points_m,  # type: ignore[arg-type]
+        tr.speed_mps,  # type: ignore[arg-type]
+        sc.imu.rate_hz,
+        origin,
+        corner_radius_m=tr.corner_radius_m,
+        wander=wander,
+        rng=rng,
+    )
 
 
 #: default turn rate of a lawnmower flight between legs (deg/s; 3 deg/s = a rate-one turn)
@@ -308,6 +332,8 @@ def perturbed_init(sc: Scenario, truth: NavTrajectory, rng: np.random.Generator)
     s0 = truth.at(0)
     ic = sc.init
     dn, de = rng.normal(0.0, ic.position_sigma_m, 2)
+    if ic.position_offset_m is not None:  # a fixed offset (Storms Table 4.1); the draw above keeps the stream
+        dn, de = ic.position_offset_m
     dlat, dlon = meters_to_latlon(dn, de, s0.lat, s0.h)
     dv = rng.normal(0.0, ic.velocity_sigma_mps, 3)
     datt = rng.normal(0.0, 1.0, 3) * np.asarray(ic.attitude_sigma_deg) * DEG_TO_RAD
@@ -414,11 +440,18 @@ class PipelineModel:
         sc = self.scenario
         sh = self.shared()
         truth: NavTrajectory = sh["truth"]
+        ideal = sh["imu"]
+        if sc.trajectory.kind == "ground_path" and sc.trajectory.wander is not None:
+            # Storms' Monte Carlo: every run drives its own random trajectory about the nominal path
+            from ..ins.simulate import ideal_imu
+
+            truth = ground_path_truth(sc, np.random.default_rng(child(seed, 3)))
+            ideal = ideal_imu(truth)
         imus: dict[str, Any] = {}
         for g in (sc.imu.grade, *(e.imu_grade for e in sc.estimators if e.imu_grade)):
             if g not in imus:
                 rng_g = np.random.default_rng(grade_seed(seed, g, sc.imu.grade))
-                imus[g], _ = imu_models.corrupt(sh["imu"], imu_models.get_grade(g), rng_g)
+                imus[g], _ = imu_models.corrupt(ideal, imu_models.get_grade(g), rng_g)
         imu = imus[sc.imu.grade]
         init = perturbed_init(sc, truth, np.random.default_rng(child(seed, 1)))
         readings = None
@@ -576,4 +609,12 @@ def run_estimator(
         np.array([np.asarray(f.cov_ne, float) for f in fixes], float).reshape(-1, 2, 2),
         np.array([f.available for f in fixes], bool),
         tuple(f.reason for f in fixes),
+        fix_accepted=_accepted(fixes, list(res.innovations)),
     )
+
+
+def _accepted(fixes: list[Any], innovations: list[Any]) -> np.ndarray:
+    """Per fix attempt, whether the fuser applied it (the pipeline records one innovation per fix, in order)."""
+    if len(innovations) != len(fixes):
+        return np.zeros(0, bool)
+    return np.array([bool(i.accepted) for i in innovations], bool)

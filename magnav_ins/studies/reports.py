@@ -59,6 +59,8 @@ def markdown_report(doc: dict[str, Any], figures: list[str] | None = None, comma
     if command:
         parts.append(f"Reproduce: `{command}`\n")
     parts.append(metrics_table(doc))
+    if doc.get("warnings"):
+        parts.append("\n**Warnings**\n\n" + "".join(f"- {w}\n" for w in doc["warnings"]))
     fb = fix_bins_table(doc)
     if fb:
         parts.append("\nFix errors (fraction of issued fixes per bin):\n\n" + fb)
