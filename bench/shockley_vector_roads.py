@@ -27,7 +27,7 @@ use 10 m sections (11 readings): demeaning and differencing remove the bias but 
 slow trend, which a 3 m section on a 10 m-correlation field mostly consists of.
 
 Output per row and method: availability and the fractions of fixes in Shockley's bins (< 3 m, 3-10, 10-20, > 20 m),
-each with a 95 % interval over the runs (mean +- 1.96 sd / sqrt(runs)).
+each with a 95 % interval over the runs (mean +- 1.96 sd / sqrt(runs); the bins over the runs that issued fixes).
 
     python bench/shockley_vector_roads.py --runs 10 --trials 200
     python bench/shockley_vector_roads.py --json
@@ -39,6 +39,7 @@ import argparse
 import json
 import sys
 import time
+import warnings
 from typing import Any
 
 import numpy as np
@@ -163,15 +164,24 @@ def run_case(c: Candidates, spec: dict[str, Any], runs: int, trials: int, seed: 
         err = np.array([x[1] for x in res])
         for meth, sel in (("ml", np.ones(len(err), bool)), ("mlr", ok)):
             e = err[sel]
-            frac = np.histogram(e, bins=[0.0, *BINS, np.inf])[0] / max(len(e), 1)
+            frac = np.histogram(e, bins=[0.0, *BINS, np.inf])[0] / len(e) if len(e) else np.full(4, np.nan)
             per_run[meth].append([sel.mean(), *frac])
     out = {}
     for meth, rows in per_run.items():
         a = np.array(rows)
-        mean, half = a.mean(axis=0), 1.96 * a.std(axis=0, ddof=1) / np.sqrt(len(a)) if len(a) > 1 else 0 * a[0]
-        out[meth] = {name: [float(mv), float(h)] for name, mv, h in zip(("availability", *BIN_NAMES), mean, half,
-                                                                      strict=True)}  # fmt: skip
+        n = np.sum(np.isfinite(a), axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(np.where(n > 0, a, 0.0), axis=0)
+            half = np.where(n > 1, 1.96 * np.nanstd(a, axis=0, ddof=1) / np.sqrt(np.maximum(n, 1)), np.nan)
+        mean = np.where(n > 0, mean, np.nan)
+        out[meth] = {name: [_num(mv), _num(h)] for name, mv, h in zip(("availability", *BIN_NAMES), mean, half,
+                                                                    strict=True)}  # fmt: skip
     return out
+
+
+def _num(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -199,7 +209,10 @@ def main(argv: list[str] | None = None) -> int:
     for name, r in res.items():
         for meth in ("ml", "mlr"):
             x = r[meth]
-            cells = " | ".join(f"{100 * x[b][0]:.0f} +- {100 * x[b][1]:.0f} %" for b in ("availability", *BIN_NAMES))
+            cells = " | ".join(
+                "-" if x[b][0] is None else f"{100 * x[b][0]:.0f} +- {100 * (x[b][1] or 0.0):.0f} %"
+                for b in ("availability", *BIN_NAMES)
+            )
             print(f"| {name} | {meth.upper()} | {cells} |")
     print(f"\n({args.runs} runs x {args.trials} sections, {len(c.idx)} candidates, {track.total_length_m:.0f} m of "
           f"road; {wall:.0f} s)")  # fmt: skip
