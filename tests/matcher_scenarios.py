@@ -59,6 +59,12 @@ def nav_estimate(fmap: Any, t: float, ne: np.ndarray, v_ne: np.ndarray, P_ne: np
     return NavEstimate(nav, P)
 
 
+def exact(fmap: GridMap) -> GridMap:
+    """The map with a zero error layer: a synthetic map whose readings are drawn from it is the truth, so the
+    matchers must not add the default map error of a map that does not know its error (``map_error.py``)."""
+    return fmap.with_error_layer(0.0, float(fmap.metadata.get("correlation_length_m", 1.0)), "synthetic: exact")
+
+
 def flat_like(fmap: GridMap) -> GridMap:
     """The same grid holding a constant field (no features)."""
     return fmap.with_values(np.full_like(np.asarray(fmap.values), 7.0))
@@ -77,7 +83,7 @@ class Scenario:
 
 # ---------------------------------------------------------------------------------------------- batch: likelihood
 def _likelihood_map(rng: np.random.Generator) -> GridMap:
-    return random_field_map((300, 300), 5.0, 40.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    return exact(random_field_map((300, 300), 5.0, 40.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN))
 
 
 def _likelihood_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str) -> tuple[Fix, np.ndarray]:
@@ -99,9 +105,7 @@ def _likelihood_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str
 
 # ---------------------------------------------------------------------------------------------- batch: PMHT
 def _gravity_map(rng: np.random.Generator) -> GridMap:
-    fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
-    # the readings are drawn from this very map: its error is exactly zero (PMHT uses the map's error layer)
-    return fmap.with_error_layer(0.0, correlation_m=10.0, source="exact: the readings are drawn from this map")
+    return exact(random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN))
 
 
 def _pmht_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str) -> tuple[Fix, np.ndarray]:
@@ -124,7 +128,7 @@ def _pmht_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str) -> t
 
 # ---------------------------------------------------------------------------------------------- recursive: Bayes
 def _vector_map(rng: np.random.Generator) -> GridMap:
-    return random_field_map((200, 200), 0.381, 0.6, 1200.0, rng, kind=KIND_V, origin=ORIGIN)
+    return exact(random_field_map((200, 200), 0.381, 0.6, 1200.0, rng, kind=KIND_V, origin=ORIGIN))
 
 
 def _bayes_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str) -> tuple[Fix, np.ndarray]:
@@ -145,7 +149,7 @@ def _bayes_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str) -> 
 
 # ---------------------------------------------------------------------------------------------- recursive: particle
 def _particle_map(rng: np.random.Generator) -> GridMap:
-    return random_field_map((400, 400), 2.0, 25.0, 50.0, rng, kind=KIND_TF, origin=ORIGIN)
+    return exact(random_field_map((400, 400), 2.0, 25.0, 50.0, rng, kind=KIND_TF, origin=ORIGIN))
 
 
 def _particle_trial(m: Any, fmap: GridMap, rng: np.random.Generator, mode: str) -> tuple[Fix, np.ndarray]:
@@ -189,3 +193,75 @@ SCENARIOS: dict[str, Scenario] = {
         _particle_trial,
     ),
 }
+
+
+# ---------------------------------------------------------------------------------------------- known map error
+@dataclass(frozen=True)
+class ErrorField:
+    """A truth field, and the map a matcher is given: truth plus a correlated error field of known 1-sigma
+    ``sigma`` and correlation length ``ell_m`` (:func:`magnav_ins.maps.synthetic.gaussian_random_field`, the
+    kernel of ``map_error.py``), with its error layer (``with_layer``) and without (``without_layer``)."""
+
+    truth: GridMap
+    with_layer: GridMap
+    without_layer: GridMap
+    sigma: float
+    ell_m: float
+
+
+def error_field(
+    seed: int,
+    shape: tuple[int, int],
+    spacing_m: float,
+    ell_field_m: float,
+    sigma_field: float,
+    sigma: float,
+    ell_m: float,
+) -> ErrorField:
+    """Truth ``random_field_map`` and truth + error (module docstring of :class:`ErrorField`)."""
+    from magnav_ins.maps.synthetic import gaussian_random_field
+
+    rng = np.random.default_rng(seed)
+    truth = random_field_map(shape, spacing_m, ell_field_m, sigma_field, rng, kind=KIND_TF, origin=ORIGIN)
+    err = gaussian_random_field(shape, spacing_m, ell_m, sigma, rng)
+    noisy = truth.with_values(np.asarray(truth.values) + err)
+    return ErrorField(exact(truth), noisy.with_error_layer(sigma, ell_m, "known"), noisy, sigma, ell_m)
+
+
+def section_trial(
+    m: Any, ef: ErrorField, fmap: GridMap, rng: np.random.Generator, nz: int = 30, step_m: float = 10.0
+) -> tuple[Fix, np.ndarray]:
+    """A straight section of ``nz`` readings ``step_m`` apart along a random heading, read from the TRUTH (noise
+    2 nT), matched against ``fmap``; INS offset ~ N(0, 15^2 I) m."""
+    sig, ps = 2.0, 15.0
+    head = rng.uniform(0, 2 * np.pi)
+    start = rng.uniform(400.0, 1100.0, 2)
+    s = step_m * np.arange(nz)
+    true_ne = start + np.column_stack([s * np.cos(head), s * np.sin(head)])
+    lat, lon = latlon(ef.truth, true_ne[:, 0], true_ne[:, 1])
+    z = ef.truth.value(lat, lon) + rng.normal(0.0, sig, nz)
+    P = np.eye(2) * ps**2
+    off = rng.multivariate_normal([0, 0], P)
+    w = make_window(fmap, np.arange(nz, dtype=float), true_ne, z, sig, KIND_TF, off, P, np.zeros(2))
+    return m.match(w, fmap), true_ne[-1]
+
+
+def particle_trial(
+    m: Any, ef: ErrorField, fmap: GridMap, rng: np.random.Generator, steps: int = 40
+) -> tuple[Fix, np.ndarray]:
+    """As ``_particle_trial`` (4 m/s, a reading each second, sigma 2 nT) with the readings from the TRUTH and the
+    particles weighted against ``fmap``."""
+    sig, dt = 2.0, 1.0
+    head = rng.uniform(0, 2 * np.pi)
+    v = 4.0 * np.array([np.cos(head), np.sin(head)])
+    p = np.array([400.0, 400.0]) + rng.uniform(-50, 50, 2)
+    P = np.eye(2) * 15.0**2
+    off = rng.multivariate_normal([0, 0], P)
+    st = m.initiate(nav_estimate(fmap, 0.0, p + off, v, P), rng)
+    for k in range(1, steps + 1):
+        p = p + v * dt
+        st = m.predict(st, nav_estimate(fmap, k * dt, p + off, v, P))
+        lat, lon = latlon(ef.truth, p[0], p[1])
+        z = ef.truth.value(lat, lon) + rng.normal(0.0, sig, 1)
+        st = m.update(st, FieldReadings(np.array([k * dt]), z, sig, KIND_TF), fmap)
+    return m.to_fix(st), p

@@ -279,7 +279,7 @@ CASES = [
     ),  # fmt: skip
     # ---- map info / grid / sample / variability
     Case("map-info-missing", ("map", "info", "nope.nc"), ("nope.nc", "no such map file")),
-    Case("map-info-junk", ("map", "info", "junk.bin"), ("junk.bin", "not a NetCDF file")),
+    Case("map-info-junk", ("map", "info", "junk.bin"), ("junk.bin", "unknown grid format")),
     Case("map-info-empty", ("map", "info", "empty"), ("empty", "is empty")),
     Case("map-grid-junk", ("map", "grid", "junk.bin", "--spacing", "100", "--out", "g.nc"), ("junk.bin",), ("g.nc",)),
     Case("map-grid-empty", ("map", "grid", "empty", "--spacing", "100", "--out", "g.nc"), ("empty",), ("g.nc",)),
@@ -316,7 +316,7 @@ CASES = [
     Case(
         "map-variability-junk",
         ("map", "variability", "junk.bin", "--window", "1000", "--out", "v.nc"),
-        ("junk.bin", "not a NetCDF file"),
+        ("junk.bin", "unknown grid format"),
         ("v.nc", "v.png"),
     ),  # fmt: skip
     Case(

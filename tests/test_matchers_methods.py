@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from matcher_scenarios import KIND_G, KIND_TF, KIND_V, ORIGIN, latlon, local, make_window, nav_estimate
+from matcher_scenarios import KIND_G, KIND_TF, KIND_V, ORIGIN, exact, latlon, local, make_window, nav_estimate
 from scipy.ndimage import gaussian_filter1d
 
 from magnav_ins.aiding.matchers import BayesGridMatcher, LikelihoodMatcher, ParticleFilter, PMHTMatcher
@@ -21,7 +21,7 @@ from magnav_ins.maps.track import TrackMap
 # ---------------------------------------------------------------------------------------------- likelihood
 def test_ml_full_map_scan_finds_true_location():
     rng = np.random.default_rng(21)
-    fmap = random_field_map((300, 300), 5.0, 40.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    fmap = exact(random_field_map((300, 300), 5.0, 40.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN))
     nz = 25  # a 120 m section (Shockley sec. 4.5: sections make a match distinctive)
     truth = np.array([812.3, 433.7]) + 5.0 * np.arange(nz)[:, None] * np.array([0.6, 0.8])
     lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
@@ -416,7 +416,9 @@ def test_road_penalisation_pulls_cloud_onto_road():
     lat, lon = fr.to_latlon(np.zeros_like(e), e)  # an east-west road through the origin
     road = TrackMap(lat, lon, 0.0, np.zeros_like(e), kind=KIND_TF)
     rng = np.random.default_rng(42)
-    pf = ParticleFilter(n_particles=20000, road=road, dynamics="ins", ins_sigma=1e-6, resample_threshold=0.0)
+    pf = ParticleFilter(
+        n_particles=20000, road=road, dynamics="ins", ins_sigma=1e-6, resample_threshold=0.0, init="disc"
+    )
     fmap = random_field_map((50, 50), 2.0, 10.0, 10.0, rng, kind=KIND_TF, origin=ORIGIN)
     prior = nav_estimate(fmap, 0.0, local(fmap, ORIGIN[0], ORIGIN[1]), np.zeros(2), np.eye(2))
     st = pf.initiate(prior, rng)
@@ -460,7 +462,7 @@ def test_matchers_on_a_geodetic_grid_map():
     vals = gaussian_random_field((300, 300), 10.0, 300.0, 20.0, rng)
     fmap = GridMap(
         lat0 + n_ax / r_n, lon0 + e_ax / (r_e * np.cos(lat0)), vals, kind=KIND_G, frame="geodetic", altitude_m=0.0
-    )
+    ).with_error_layer(0.0, 300.0)  # the readings are drawn from this map: it is exact
     # PMHT: 30 scans 71 m apart, inside the 3 km map
     v = np.array([5.0, 5.0])
     truth = np.array([-800.0, -700.0]) + v * 10.0 * np.arange(30)[:, None]  # about the grid centre

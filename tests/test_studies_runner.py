@@ -29,7 +29,12 @@ DESIGN_KEYS = {
     "availability",
     "nees_mean",
 }
-EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons", "rms_after_first_fix_m"}
+EXTRA_KEYS = {
+    "fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons", "fix_nees_mean", "hpl_median_m",
+    "hpl_exceedance", "rms_after_first_fix_m",
+}  # fmt: skip
+#: the stand-in's protection level: sqrt(2 ln 10) sigma, exceeded by a circular Gaussian error 10 % of the time
+HPL_K10 = float(np.sqrt(2.0 * np.log(10.0)))
 
 
 @dataclass(frozen=True)
@@ -78,7 +83,21 @@ class StandInModel:
             lat,
             lon,
             (
-                EstimatorOutput("aided", "ml", "ukf", al, ao, cov, fix_t, fix_lat, fix_lon, fix_cov, avail, reasons),
+                EstimatorOutput(
+                    "aided",
+                    "ml",
+                    "ukf",
+                    al,
+                    ao,
+                    cov,
+                    fix_t,
+                    fix_lat,
+                    fix_lon,
+                    fix_cov,
+                    avail,
+                    reasons,
+                    hpl_m=np.full(self.n, HPL_K10 * s),
+                ),  # fmt: skip
                 EstimatorOutput("free_inertial", None, "free_inertial", fl, fo),
             ),
         )
@@ -110,6 +129,12 @@ def test_metrics_json_keys_and_values(tmp_path):
     # availability ~ 0.8 by construction; fix errors Rayleigh(sigma=2): P(e < 3) = 1 - exp(-9/8) = 0.675
     assert aided["availability"] == pytest.approx(0.8, abs=0.1)
     assert aided["fix_within_3m_fraction"] == pytest.approx(1 - np.exp(-9 / 8), abs=0.1)
+    # fix errors N(0, 2^2) per axis with covariance diag(4, 4): fix NEES 2; HPL exceeded at 10 % of the samples
+    assert aided["fix_nees_mean"] == pytest.approx(2.0, rel=0.25)
+    assert aided["hpl_median_m"] == pytest.approx(HPL_K10 * 5.0) and aided["hpl_exceedance"] == pytest.approx(
+        0.1, abs=0.03
+    )
+    assert on_disk["free_inertial"]["hpl_median_m"] is None and on_disk["free_inertial"]["hpl_exceedance"] is None
     # a ramp drifts without bound: the baseline "diverges" in every run
     assert on_disk["free_inertial"]["divergence_rate"] == 1.0
     for f in ("runs.nc", "report.md", "track.png", "error_vs_time.png", "error_cdf.png", "free_inertial.png"):
@@ -176,6 +201,9 @@ def test_runs_nc_round_trip(tmp_path):
     doc = json.loads((tmp_path / "metrics.json").read_text())
     e = np.hypot(ds["err_north_m"].values[:, 0].astype(float), ds["err_east_m"].values[:, 0].astype(float))
     assert np.sqrt(np.mean(e**2)) == pytest.approx(doc["estimators"]["aided"]["rms_horizontal_m"], rel=1e-5)
+    hpl = ds["hpl_m"].values[:, 0].astype(float)
+    assert ds["hpl_m"].attrs["units"] == "m" and np.isnan(ds["hpl_m"].values[:, 1]).all()
+    assert np.mean(e > hpl) == pytest.approx(doc["estimators"]["aided"]["hpl_exceedance"], abs=1e-9)
 
 
 def test_plot_error_leaves_no_outputs(tmp_path, monkeypatch):

@@ -368,20 +368,17 @@ def read_map(
 
 
 #: the first bytes of a NetCDF file: classic / 64-bit offset / CDF-5, or NetCDF-4 (HDF5)
-_NETCDF_MAGIC = (b"CDF\x01", b"CDF\x02", b"CDF\x05", b"\x89HDF\r\n\x1a\n")
 
 
-def _check_netcdf_signature(path: Path) -> None:
-    """One clear line for a file that is not NetCDF at all (xarray's own message lists its IO backends)."""
+def _check_not_empty(path: Path) -> None:
+    """One clear line for an unreadable or empty file (the readers' own messages list their IO backends)."""
     try:
         with path.open("rb") as fh:
             head = fh.read(8)
     except OSError as exc:
         raise MapError(f"{path}: cannot be read ({exc.strerror or exc})") from None
     if not head:
-        raise MapError(f"{path}: the file is empty; expected a NetCDF map")
-    if not head.startswith(_NETCDF_MAGIC):
-        raise MapError(f"{path}: not a NetCDF file (no NetCDF or HDF5 signature); expected a NetCDF map")
+        raise MapError(f"{path}: the file is empty; expected a map grid (NetCDF, GeoTIFF, ER Mapper, GXF, GMT)")
 
 
 def _norm(s: str) -> str:

@@ -59,6 +59,11 @@ class OnlinePipeline(Pipeline):
         self._accel_bias = np.zeros(3)
         self.set_static_bias(gyro_bias_b, accel_bias_b)
 
+    def set_sample_type(self, sample_type: str) -> None:
+        """Change the sample type of later samples (the bridge learns it from the autopilot's heartbeat)."""
+        self._means = SampleMeans(sample_type)
+        self.sample_type = sample_type
+
     def set_static_bias(self, gyro_bias_b: np.ndarray | None, accel_bias_b: np.ndarray | None) -> None:
         """Subtract these biases (rad/s, m/s^2, body FRD; None = zero) from every later sample."""
         g = np.zeros(3) if gyro_bias_b is None else np.asarray(gyro_bias_b, float).reshape(3)

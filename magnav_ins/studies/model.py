@@ -85,7 +85,10 @@ def build_truth(sc: Scenario) -> NavTrajectory:
                 traj = simulate.survey_line(line["lat"], line["lon"], line["h"], tr.speed_mps, rate)
         elif tr.kind == "lawnmower":
             turn = (tr.turn_rate_deg_s or LAWNMOWER_TURN_RATE_DEG_S) * DEG_TO_RAD
-            traj = simulate.waypoints(lawnmower_points(tr), tr.speed_mps, rate, turn_rate=turn)  # type: ignore[arg-type]
+            tau = tr.roll_time_constant_s or LAWNMOWER_ROLL_TIME_CONSTANT_S
+            traj = simulate.waypoints(
+                lawnmower_points(tr), tr.speed_mps, rate, turn_rate=turn, roll_time_constant_s=tau
+            )  # type: ignore[arg-type]
         else:
             traj = simulate.trajectory_from_csv(tr.path)  # type: ignore[arg-type]
     except MagnavError as exc:
@@ -118,6 +121,10 @@ def ground_path_truth(sc: Scenario, rng: np.random.Generator | None = None) -> N
 
 #: default turn rate of a lawnmower flight between legs (deg/s; 3 deg/s = a rate-one turn)
 LAWNMOWER_TURN_RATE_DEG_S = 3.0
+#: default roll time constant of a lawnmower flight (s): a bank change of a large aircraft. With the 1 s of
+#: ``simulate.waypoints``' default, an INS sampled at 1-2 Hz cannot follow the roll-in of the turns: an ideal IMU at
+#: 1 Hz mechanised along the QLD flight ends 750 m off after 6000 s (2 Hz: 130 m); with 5 s, 83 m (2 Hz: 11 m)
+LAWNMOWER_ROLL_TIME_CONSTANT_S = 5.0
 
 
 def lawnmower_points(tr: Any) -> np.ndarray:
@@ -230,7 +237,9 @@ def build_map(sc: Scenario) -> Any:
     """The scenario's map: ``synthetic:random_field`` / ``synthetic:hallway`` (``maps.synthetic``, drawn from
     ``[map] options.seed``), a downloaded gravity grid when the options hold any of :data:`GRID_OPTIONS`
     (:func:`magnav_ins.studies.grids.read_gravity_grid`: ``unit``, ``altitude_m``, ``datum``, ``variable``,
-    ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load)."""
+    ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load). Options
+    ``error_sigma`` (map unit) and ``error_correlation_m`` (m, default two node spacings) attach a uniform error layer
+    (``GridMap.with_error_layer``): 0 when the study draws its readings from the map itself."""
     m = sc.map
     if m is None:
         raise ConfigError(f"{sc.source}: the scenario has no [map]")
@@ -264,8 +273,8 @@ def build_map(sc: Scenario) -> Any:
                 )
                 if opts:
                     raise TypeError(f"unknown options {sorted(opts)}")
-                if which == "random_field":
-                    return grid
+                if which == "random_field":  # the readings are drawn from it: the map is exact (map_error.py)
+                    return grid.with_error_layer(0.0, grid.metadata["correlation_length_m"], "synthetic: exact")
                 from ..maps.track import road_network_from_grid
 
                 # a street grid sampled every step_m along streets at the given northings / eastings (m)
@@ -277,6 +286,8 @@ def build_map(sc: Scenario) -> Any:
         )
     from ..maps import io as maps_io
 
+    err_sigma = opts.pop("error_sigma", None)
+    err_corr = opts.pop("error_correlation_m", None)
     try:
         if GRID_OPTIONS & set(opts):  # a downloaded gravity grid with an explicit unit (studies.grids)
             from .grids import read_gravity_grid
@@ -310,6 +321,12 @@ def build_map(sc: Scenario) -> Any:
         raise ConfigError(f"{sc.where('map.path')}: {exc}") from None
     if fmap.kind is not m.kind:
         raise ConfigError(f"{sc.where('map.kind')}: the map holds {fmap.kind.value}, the scenario says {m.kind.value}")
+    if err_sigma is not None:  # a stated error layer (e.g. 0 when the study draws its readings from this very map)
+        try:
+            corr = float(err_corr) if err_corr is not None else 2.0 * float(min(fmap.spacing_m))
+            fmap = fmap.with_error_layer(float(err_sigma), corr, "stated in the scenario's [map] options")
+        except (MagnavError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{sc.where('map.options')}: error_sigma / error_correlation_m: {exc}") from None
     return fmap
 
 
@@ -582,6 +599,7 @@ def run_estimator(
     except MagnavError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     nav, P = res.trajectory, np.asarray(res.P)
+    P_online, t_online = P, nav.t
     if j is not None and sc.estimators[j].smooth and fkind == "graph":
         # offline: the batch LM solution re-integrated between its nodes, reported at t_out itself
         try:
@@ -595,6 +613,7 @@ def run_estimator(
     lat = np.interp(t_out, nav.t, nav.lat)
     lon = np.interp(t_out, nav.t, np.unwrap(nav.lon))
     cov = np.stack([np.interp(t_out, nav.t, P[:, a, b]) for a in range(2) for b in range(2)], -1).reshape(-1, 2, 2)
+    hpl = protection_levels(t_out, t_online, P_online, res.hpl_m, cov, res.integrity_risk)
     fixes = list(res.fixes)
     return EstimatorOutput(
         name,
@@ -610,6 +629,7 @@ def run_estimator(
         np.array([f.available for f in fixes], bool),
         tuple(f.reason for f in fixes),
         fix_accepted=_accepted(fixes, list(res.innovations)),
+        hpl_m=hpl,
     )
 
 
@@ -618,3 +638,27 @@ def _accepted(fixes: list[Any], innovations: list[Any]) -> np.ndarray:
     if len(innovations) != len(fixes):
         return np.zeros(0, bool)
     return np.array([bool(i.accepted) for i in innovations], bool)
+
+
+def protection_levels(
+    t_out: np.ndarray,
+    t_online: np.ndarray,
+    P_online: np.ndarray,
+    hpl_online: np.ndarray,
+    cov_out: np.ndarray,
+    integrity_risk: float,
+) -> np.ndarray | None:
+    """The estimator's horizontal protection level (m) at ``t_out`` (s): the fuser's online HPL (at ``t_online``,
+    with its covariances ``P_online`` (N,>=2,>=2) m^2) less its fault-free part ``K sigma_max``
+    (:func:`aiding.fusion.integrity.hpl_fault_free`), i.e. the fault-detection margin or doubt, interpolated, plus
+    ``K sigma_max`` of the reported covariance ``cov_out`` (n,2,2) (the smoothed one for a smoothed track, whose
+    fixes are the online filter's). None when the fuser gave no HPL."""
+    from ..aiding.fusion.integrity import hpl_fault_free
+
+    h = np.asarray(hpl_online, float)
+    if h.size == 0 or not np.isfinite(h).any() or len(t_online) != h.size:
+        return None
+    ff_online = np.array([hpl_fault_free(p[:2, :2], integrity_risk) for p in np.asarray(P_online)])
+    excess = np.maximum(h - ff_online, 0.0)
+    ff_out = np.array([hpl_fault_free(c, integrity_risk) for c in np.asarray(cov_out)])
+    return ff_out + np.interp(t_out, t_online, excess)

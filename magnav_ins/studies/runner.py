@@ -66,6 +66,7 @@ class EstimatorOutput:
     fix_available: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     fix_reason: tuple[str, ...] = ()
     fix_accepted: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    hpl_m: NDArray[np.float64] | None = None  # (N,) horizontal protection level, m (None: none given)
 
 
 @dataclass(frozen=True)
@@ -110,6 +111,7 @@ class EstimatorSummary:
     fix_corr_ne: NDArray[np.float32]
     fix_available: NDArray[np.bool_]
     no_fix_reasons: dict[str, int] = field(default_factory=dict)
+    hpl: NDArray[np.float32] | None = None
 
 
 def reason_category(reason: str) -> str:
@@ -176,6 +178,8 @@ def summarise_run(
         else:
             fdn = fde = np.zeros(0)
         fsn, fse, frho = _cov_parts(np.asarray(est.fix_cov_ne, float), len(fix_t))
+        hpl = None if est.hpl_m is None else np.asarray(est.hpl_m, float)[sel]
+        fix_nees = M.nees_ne(fdn, fde, np.asarray(est.fix_cov_ne, float))[fix_avail] if len(fix_t) else np.zeros(0)
         rm = M.RunMetrics(
             e=e,
             nees=nees,
@@ -183,6 +187,8 @@ def summarise_run(
             fix_attempts=len(fix_t),
             divergent=M.is_divergent(e, e_free),
             first_fix_index=M.first_fix_index(t, fix_t, np.asarray(est.fix_accepted, bool)),
+            hpl_m=hpl if hpl is not None else np.full(len(sel), np.nan),
+            fix_nees=fix_nees,
         )
         sn, se, rho = _cov_parts(cov, len(sel))
         reasons: dict[str, int] = {}
@@ -193,6 +199,7 @@ def summarise_run(
         res[est.name] = EstimatorSummary(
             est.matcher, est.fusion, rm, dn.astype(np.float32), de.astype(np.float32), sn, se, rho,
             fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail, reasons,
+            None if hpl is None else hpl.astype(np.float32),
         )  # fmt: skip
     return RunSummary(index, t, lat_t, lon_t, res, wall_s)
 
@@ -411,6 +418,12 @@ def runs_dataset(summaries: list[RunSummary], scenario_name: str = ""):
                 arr[i, j, : len(v)] = v
         return arr
 
+    def stack_hpl() -> NDArray:
+        nan = np.full(len(s0.t), np.nan, np.float32)
+        return np.stack(
+            [np.stack([nan if (h := s.estimators[n].hpl) is None else h for n in names]) for s in summaries]
+        )
+
     dims = ("run", "estimator", "time")
     fdims = ("run", "estimator", "fix")
     ds = xr.Dataset(
@@ -429,6 +442,7 @@ def runs_dataset(summaries: list[RunSummary], scenario_name: str = ""):
             "fix_sigma_east_m": (fdims, stack_fix("fix_sigma_e", np.nan, np.float32)),
             "fix_corr_ne": (fdims, stack_fix("fix_corr_ne", np.nan, np.float32)),
             "fix_available": (fdims, stack_fix("fix_available", 0, np.int8)),
+            "hpl_m": (dims, stack_hpl()),
             "divergent": (
                 ("run", "estimator"),
                 np.array([[s.estimators[n].metrics.divergent for n in names] for s in summaries], np.int8),
@@ -441,8 +455,17 @@ def runs_dataset(summaries: list[RunSummary], scenario_name: str = ""):
         },
         attrs={"title": f"magnav-ins run: {scenario_name}", "conventions": "errors are estimate minus truth, NED"},
     )
-    for v in ("err_north_m", "err_east_m", "sigma_north_m", "sigma_east_m", "fix_err_north_m", "fix_err_east_m"):
+    for v in (
+        "err_north_m",
+        "err_east_m",
+        "sigma_north_m",
+        "sigma_east_m",
+        "fix_err_north_m",
+        "fix_err_east_m",
+        "hpl_m",
+    ):
         ds[v].attrs["units"] = "m"
+    ds["hpl_m"].attrs["long_name"] = "horizontal protection level at the fuser's integrity risk (default 1e-3)"
     return ds
 
 

@@ -147,7 +147,51 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         hi=3000.0,
         lo_open=True,
         why="above Mach 8 nothing navigates by maps",
-        kinds=("great_circle", "waypoints", "survey_line", "lawnmower"),
+        kinds=("great_circle", "waypoints", "survey_line", "lawnmower", "ground_path"),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "origin",
+        "[lat, lon] deg",
+        "origin of a ground path's local plane",
+        REQUIRED,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "points_m",
+        "[[north, east], ...] m",
+        "at least two corner points about the origin (a walk, a hallway route)",
+        REQUIRED,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "altitude_m",
+        "number",
+        "ellipsoidal height of a ground path, m",
+        0.0,
+        lo=-11000.0,
+        hi=1e5,
+        why="from the deepest ocean to the edge of space",
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "corner_radius_m",
+        "number",
+        "radius of the rounded corners, m",
+        1.0,
+        lo=0.0,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "wander",
+        "table",
+        "random walk about the path { " + ", ".join(WANDER_KEYS) + " } (magnav_ins.ins.ground_path.Wander)",
+        "{}",
+        kinds=("ground_path",),
     ),
     ScenarioKey(
         "trajectory", "survey", "string", "survey CSV(.xz) path or builtin:NAME", REQUIRED, kinds=("survey_line",)
@@ -232,6 +276,16 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         why="a rate-two turn is 6 deg/s",
         kinds=("lawnmower",),
     ),
+    ScenarioKey(
+        "trajectory",
+        "roll_time_constant_s",
+        "number",
+        "time constant of the roll into and out of a turn, s",
+        5.0,
+        lo=0.0,
+        lo_open=True,
+        kinds=("lawnmower",),
+    ),
     ScenarioKey("trajectory", "path", "string", "trajectory CSV path", REQUIRED, kinds=("file",)),
     ScenarioKey(
         "trajectory",
@@ -278,6 +332,13 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         hi=30.0,
         why="the error model assumes small attitude errors",
     ),
+    ScenarioKey(
+        "init",
+        "position_offset_m",
+        "[north, east] m",
+        "a fixed initial position error instead of a random draw (Storms Table 4.1)",
+        None,
+    ),
     # [map]
     ScenarioKey("map", "path", "string", "NetCDF grid, survey CSV(.xz), builtin:NAME or synthetic:NAME", REQUIRED),
     ScenarioKey("map", "kind", "string", "one of " + ", ".join(k.value for k in FieldKind), REQUIRED),
@@ -308,10 +369,17 @@ SCHEMA: tuple[ScenarioKey, ...] = (
     ScenarioKey("map", "exclude_line_type", "string", 'leave out the survey lines of this type (e.g. "TIE")', None),
     ScenarioKey(
         "map",
+        "allow_implausible",
+        "boolean",
+        "accept map values implausible for the map's kind (e.g. full gravity as a disturbance)",
+        False,
+    ),
+    ScenarioKey(
+        "map",
         "error_sigma",
         "number",
-        "a uniform map error layer: 1-sigma map error in the map's unit",
-        None,
+        "give the map a uniform error layer: 1-sigma map error in the map's unit (with error_correlation_m)",
+        "the map's own layer, else the matchers' stated default",
         lo=0.0,
         lo_open=True,
     ),
@@ -319,7 +387,7 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "map",
         "error_correlation_m",
         "number",
-        "correlation length of error_sigma, m (with error_sigma)",
+        "correlation length of the map error given by error_sigma, m",
         None,
         lo=0.0,
         lo_open=True,
@@ -328,25 +396,16 @@ SCHEMA: tuple[ScenarioKey, ...] = (
         "map",
         "unit",
         "string",
-        "unit of a downloaded grid's values if the file states none or an impossible one (nT; mGal, um/s^2, m/s^2)",
+        "unit of a downloaded grid's values if the file states none or a wrong one (nT; mGal, um/s^2, m/s^2)",
         None,
     ),
     ScenarioKey("map", "altitude_m", "number", "ellipsoidal height of a downloaded grid's surface, m", None),
+    ScenarioKey("map", "datum", "string", "geodetic datum of a downloaded grid that does not say (WGS84)", None),
     ScenarioKey(
-        "map", "datum", "string", "datum of a downloaded latitude/longitude grid that does not say (WGS84)", None
-    ),
-    ScenarioKey(
-        "map", "crs", "string", "CRS of a downloaded grid in metres that does not say (EPSG:NNNN, PROJ, WKT)", None
+        "map", "crs", "string", "CRS of a downloaded grid in metres that does not say (EPSG:NNNN, PROJ or WKT)", None
     ),
     ScenarioKey("map", "variable", "string", "the data variable of a file holding several grids", None),
     ScenarioKey("map", "reproject", "boolean", "resample a projected grid onto latitude/longitude", False),
-    ScenarioKey(
-        "map",
-        "allow_implausible",
-        "boolean",
-        "accept map values implausible for the map's kind (e.g. full gravity as a disturbance)",
-        False,
-    ),
     # [sensor]
     ScenarioKey("sensor", "kind", "string", "one of " + ", ".join(SENSOR_KINDS), REQUIRED),
     ScenarioKey(
@@ -410,7 +469,20 @@ SCHEMA: tuple[ScenarioKey, ...] = (
     ),
     ScenarioKey("estimator", "imu_grade", "string", "this estimator's own IMU grade", "[imu] grade"),
 )
-_SCHEMA_BY_PATH = {k.path: k for k in SCHEMA}
+
+
+def _by_path(keys: tuple[ScenarioKey, ...]) -> dict[str, ScenarioKey]:
+    """Key path -> entry. A key documented once per trajectory kind (``altitude_m``) is range-checked by the first
+    of its entries that states a range."""
+    out: dict[str, ScenarioKey] = {}
+    for k in keys:
+        old = out.get(k.path)
+        if old is None or (old.lo is None and old.hi is None and (k.lo is not None or k.hi is not None)):
+            out[k.path] = k
+    return out
+
+
+_SCHEMA_BY_PATH = _by_path(SCHEMA)
 
 
 # --------------------------------------------------------------------------------------------- line scan
@@ -482,7 +554,8 @@ class TrajectoryConfig:
     those of the listed lines); ``columns`` maps our survey column names to the file's
     (:func:`magnav_ins.maps.io.read_survey`), ``geoid_m`` replaces the shipped geoid for orthometric heights. ``lawnmower`` (``start``
     [lat, lon] deg, ``heading_deg`` of the first leg, ``leg_length_m``, ``leg_spacing_m``, ``legs``, ``altitude_m``,
-    ``speed_mps``, optional ``turn_rate_deg_s``, default 3): parallel legs joined by turns, each next leg
+    ``speed_mps``, optional ``turn_rate_deg_s``, default 3, and ``roll_time_constant_s``, default 5): parallel legs
+    joined by turns, each next leg
     ``leg_spacing_m`` to the right, the pattern flown back and forth until ``duration_s``
     (:func:`magnav_ins.studies.model.lawnmower_points`): a long flight folded into one map tile.
     """
@@ -503,6 +576,7 @@ class TrajectoryConfig:
     leg_spacing_m: float | None = None
     legs: int | None = None
     turn_rate_deg_s: float | None = None
+    roll_time_constant_s: float | None = None
     line_type: str | None = None
     columns: tuple[tuple[str, str], ...] = ()
     geoid_m: float | None = None
@@ -565,6 +639,7 @@ class MapConfig:
     geoid_m: float | None = None
     line_type: str | None = None
     exclude_line_type: str | None = None
+    allow_implausible: bool = False
     error_sigma: float | None = None
     error_correlation_m: float | None = None
     unit: str | None = None
@@ -573,7 +648,6 @@ class MapConfig:
     crs: str | None = None
     variable: str | None = None
     reproject: bool = False
-    allow_implausible: bool = False
 
     def grid_options(self) -> dict[str, Any]:
         """The keys of a grid file as downloaded (``unit``, ``altitude_m``, ``datum``, ``crs``, ``variable``,
@@ -805,7 +879,7 @@ _TRAJ_KEYS = {
     "file": ({"path"}, set()),
     "lawnmower": (
         {"start", "heading_deg", "leg_length_m", "leg_spacing_m", "legs", "altitude_m", "speed_mps"},
-        {"turn_rate_deg_s"},
+        {"turn_rate_deg_s", "roll_time_constant_s"},
     ),
     "ground_path": ({"origin", "points_m", "speed_mps"}, {"altitude_m", "corner_radius_m", "wander"}),
 }
@@ -863,8 +937,9 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
         kw["leg_length_m"] = _number(ctx, "trajectory.leg_length_m", t["leg_length_m"], positive=True)
         kw["leg_spacing_m"] = _number(ctx, "trajectory.leg_spacing_m", t["leg_spacing_m"], positive=True)
         kw["legs"] = _int(ctx, "trajectory.legs", t["legs"], minimum=1)
-        if "turn_rate_deg_s" in t:
-            kw["turn_rate_deg_s"] = _number(ctx, "trajectory.turn_rate_deg_s", t["turn_rate_deg_s"], positive=True)
+        for key in ("turn_rate_deg_s", "roll_time_constant_s"):
+            if key in t:
+                kw[key] = _number(ctx, f"trajectory.{key}", t[key], positive=True)
     elif kind == "ground_path":
         kw["origin_deg"] = _latlon(ctx, "trajectory.origin", t["origin"])
         pts = t["points_m"]
@@ -984,6 +1059,9 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     if kw and not path.lower().endswith(SURVEY_SUFFIXES):
         k = sorted(kw)[0]
         raise ctx.error(f"map.{k}", "applies to a survey CSV map (gridded on load), not to a grid file")
+    allow = t.get("allow_implausible", False)
+    if not isinstance(allow, bool):
+        raise ctx.error("map.allow_implausible", f"expected true or false, got {allow!r}")
     grid_kw: dict[str, Any] = {}
     for k in ("unit", "datum", "crs", "variable"):
         if k in t:
@@ -1006,9 +1084,6 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
         if "error_sigma" not in t:
             raise ctx.error("map.error_correlation_m", "needs error_sigma (1-sigma map error in the map's unit)")
         kw["error_correlation_m"] = _number(ctx, "map.error_correlation_m", t["error_correlation_m"], positive=True)
-    allow = t.get("allow_implausible", False)
-    if not isinstance(allow, bool):
-        raise ctx.error("map.allow_implausible", f"expected true or false, got {allow!r}")
     return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), allow_implausible=allow, **kw)
 
 

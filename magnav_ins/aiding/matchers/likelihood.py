@@ -34,12 +34,12 @@ threshold.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
+from scipy import ndimage, stats
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
@@ -56,6 +56,14 @@ from ._local import (
     sigma_window,
     spacing_of,
     window_axes,
+)
+from .map_error import (
+    MapErrorModel,
+    likelihood_temperature,
+    resolve_map_error,
+    section_covariance,
+    section_transform,
+    whitened_misfit,
 )
 
 FloatArray = NDArray[np.float64]
@@ -85,6 +93,32 @@ class Surface:
     k_max: int = -1
     along: FloatArray | None = None
     lane: NDArray[np.int64] | None = None
+    section: Section | None = None
+    grow: float = 1.0
+
+
+#: the "no fix" reason when the likelihood's peak region reaches the border of the scanned window
+EDGE_REASON = "likelihood reaches the edge of the search window"
+
+
+@dataclass(frozen=True)
+class Section:
+    """The section a surface was scanned with, for the honest covariance (:meth:`LikelihoodMatcher.decide`):
+    INS positions ``dn``, ``de`` (K,) m relative to the last reading in the surface's frame, readings ``z``
+    (K, c), the height of the last reading ``h_last`` (m or None), the sensor 1-sigma ``sigma_sensor`` and the scan's
+    per-reading variance before node error and differencing ``s2_base`` (sensor + mean map error, unit^2), and
+    where the map error came from (``error``)."""
+
+    dn: FloatArray
+    de: FloatArray
+    z: FloatArray
+    h_last: float | None
+    sigma_sensor: float
+    s2_base: float
+    error: MapErrorModel
+    t: FloatArray | None = None
+    drift_mps: FloatArray | None = None
+    tau: FloatArray | None = None
 
 
 @dataclass
@@ -124,7 +158,14 @@ class LikelihoodMatcher:
     distance_step_m: float | None = None
     both_directions: bool = True
     track_sigma_m: float = 1.0
+    map_correlation_m: float | None = None
+    honest: bool = True
+    ambiguity_mass: float = 0.05
+    count_overlap: bool = True
+    track_error: bool = True
+    window_growth: int = 2
     name: str = ""
+    _last_fix_t: float = field(default=-np.inf, init=False, repr=False, compare=False)
 
     METHODS: ClassVar[tuple[str, ...]] = ("ml", "mlr", "abl")
 
@@ -145,8 +186,9 @@ class LikelihoodMatcher:
             self.name = self.method
 
     # ------------------------------------------------------------------ surface
-    def surface(self, window: MatchWindow, fmap: FieldMap) -> Surface | str:
-        """The log-likelihood surface for ``window`` on ``fmap``, or the reason there is none."""
+    def surface(self, window: MatchWindow, fmap: FieldMap, grow: float = 1.0) -> Surface | str:
+        """The log-likelihood surface for ``window`` on ``fmap``, or the reason there is none; ``grow`` widens the
+        search window by that factor."""
         rd = window.readings
         z = np.asarray(rd.value, dtype=float)
         ncomp = map_components(fmap)
@@ -168,7 +210,7 @@ class LikelihoodMatcher:
         cov = np.asarray(window.cov_ne, dtype=float)
         cov_last = cov[-1] if cov.ndim == 3 else cov
         if self.search_window:
-            half_n, half_e = sigma_window(cov_last, self.window_sigma, self.window_floor_m)
+            half_n, half_e = sigma_window(cov_last, self.window_sigma * grow, self.window_floor_m * grow)
             if not np.isfinite(half_n):
                 return "prior covariance not finite"
         else:
@@ -177,9 +219,17 @@ class LikelihoodMatcher:
                 return "search_window=False needs a grid map with known extent"
             half_n, half_e = extent
         nz = len(z)
+        err = resolve_map_error(fmap, self.map_sigma, self.map_correlation_m)
+        sm = err.sigma_at(lat, lon)
+        s2_base = float(rd.sigma) ** 2 + float(np.mean(sm**2))  # sensor + map error variance (map_error.py)
+        t_sec = np.asarray(rd.t, dtype=float)[good]
+        drift = ins_drift_rate(t_sec, cov[good] if cov.ndim == 3 else None) if self.track_error else np.zeros(2)
+        tau = _section_times(t_sec, dn, de) if self.track_error else None
+        sec = Section(dn, de, z, h_last, float(rd.sigma), s2_base, err, t_sec, drift, tau)
         if _is_track(fmap):
-            return self._track_surface(fmap, frame, z, dn, de, half_n, half_e, float(rd.sigma))
-        s2 = float(rd.sigma) ** 2 + self.map_sigma**2
+            out = self._track_surface(fmap, frame, z, dn, de, half_n, half_e, s2_base)
+            return out if isinstance(out, str) else replace(out, section=sec)
+        s2 = s2_base
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
         g_rms = _gradient_rms(native, fmap, window)
         if native is not None and self.quantisation > 0 and np.isfinite(g_rms) and g_rms > 0:
@@ -206,8 +256,9 @@ class LikelihoodMatcher:
             if nz == 1 and not (self.demean or self.difference):  # the fast path: one compiled pass
                 l2, kmax, variability = grid_scan1(v_last, np.ascontiguousarray(z[0]), s2, ic, jc)
                 return Surface(
-                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, float(variability), s2, (half_n, half_e), int(kmax)
-                )
+                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, float(variability), s2, (half_n, half_e), int(kmax),
+                    section=sec,
+                )  # fmt: skip
             variability = float(grid_variability(v_last, ic, jc))
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m_last = v_last.reshape(1, gn.size, ncomp)
@@ -232,7 +283,9 @@ class LikelihoodMatcher:
                 last = np.ascontiguousarray(last.reshape(n_ax.size, e_ax.size, ncomp))
                 ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
                 variability = float(grid_variability(last, ic, jc))
-                return Surface(frame, l2.ravel(), n_ax, e_ax, l2.shape, step, variability, s2r, (half_n, half_e))
+                return Surface(
+                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, variability, s2r, (half_n, half_e), section=sec
+                )
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m = frame.sample(dn[:, None, None] + gn[None], de[:, None, None] + ge[None], h_last)
             m = m.reshape(nz, gn.size, ncomp)
@@ -249,7 +302,7 @@ class LikelihoodMatcher:
             mm = mm - mm.mean(axis=0, keepdims=True)
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
-        return Surface(frame, logl, n_ax, e_ax, gn.shape, step, variability, s2, (half_n, half_e))
+        return Surface(frame, logl, n_ax, e_ax, gn.shape, step, variability, s2, (half_n, half_e), section=sec)
 
     def _track_surface(
         self,
@@ -260,7 +313,7 @@ class LikelihoodMatcher:
         de: FloatArray,
         half_n: float,
         half_e: float,
-        sigma: float,
+        s2_base: float,
     ) -> Surface | str:
         """Likelihood at the points of a road map (Shockley 003 sec. 4.3-4.5): the section of readings is slid
         along the road; reading k sits ``d_k`` metres (INS-travelled distance to the last reading) before the
@@ -293,7 +346,7 @@ class LikelihoodMatcher:
         m = np.concatenate(ms, axis=1)  # (nz, M * ndirs, c)
         cn = np.tile(tn[sel], len(dirs))
         ce = np.tile(te[sel], len(dirs))
-        s2 = sigma**2 + self.map_sigma**2
+        s2 = s2_base
         k0 = int(np.argmin(tn[sel] ** 2 + te[sel] ** 2))
         center = vals[sel][k0]
         variability = feature_variability(vals[sel], center) if np.all(np.isfinite(center)) else 0.0
@@ -316,40 +369,66 @@ class LikelihoodMatcher:
         """A :class:`Fix` at the time of the window's last reading, or a "no fix" with the reason."""
         t = float(window.readings.t[-1]) if len(window.readings) else float("nan")
         try:
-            surf = self.surface(window, fmap)
+            grow = 1.0
+            for _ in range(self.window_growth + 1):  # widen the window while the likelihood reaches its edge
+                surf = self.surface(window, fmap, grow)
+                if isinstance(surf, str):
+                    return Fix.no_fix(t, surf, self.name)
+                surf = replace(surf, grow=grow)
+                fix = self.decide(surf, t)
+                if not fix.reason.startswith(EDGE_REASON):
+                    return fix
+                grow *= 2.0
+            return fix
         except (ValueError, FloatingPointError) as exc:  # data problems never escape as exceptions
             return Fix.no_fix(t, f"map lookup failed: {exc}", self.name)
-        if isinstance(surf, str):
-            return Fix.no_fix(t, surf, self.name)
-        return self.decide(surf, t)
 
     def decide(self, surf: Surface, t: float) -> Fix:
-        """Apply ML / MLR / ABL to a surface."""
+        """Apply ML / MLR / ABL to a surface, with the honest temperature and the ambiguity test (class
+        docstring)."""
         logl = surf.logl
         k = surf.k_max if surf.k_max >= 0 else int(np.argmax(logl))
         if not np.isfinite(logl[k]):
             return Fix.no_fix(t, "off the map: no map values in the search window", self.name)
-        if surf.variability < (self.min_variability**2) * surf.sigma2:
+        s2_flat = _flat_sigma2(surf, self.difference)
+        if surf.variability < (self.min_variability**2) * s2_flat:
             return Fix.no_fix(
                 t,
                 f"flat map: feature variability {np.sqrt(surf.variability):.3g} below "
-                f"{self.min_variability:g} x reading sigma {np.sqrt(surf.sigma2):.3g}",
+                f"{self.min_variability:g} x reading sigma {np.sqrt(s2_flat):.3g}",
                 self.name,
             )
-        lmax = float(logl[k])
         grid = surf.shape is not None
         if grid:
             ki, kj = divmod(k, surf.shape[1])  # type: ignore[index]
             n_fix, e_fix = float(surf.n[ki]), float(surf.e[kj])
+        else:
+            n_fix, e_fix = float(surf.n[k]), float(surf.e[k])
+        temp = self.temperature(surf, n_fix, e_fix) if (grid and self.honest) else 1.0
+        temp *= self._overlap_factor(surf)
+        logl = (logl - float(logl[k])) / temp  # tempered: the peak is 0
+        lmax = 0.0
+        if grid:
             l2 = logl.reshape(surf.shape)
             pk, snn, sne, see, _ = grid_moments(l2, surf.n, surf.e, lmax, n_fix, e_fix)
             p = None
             about = (n_fix, e_fix)
+            if self.search_window and _reaches_edge(l2, ki, kj):
+                return Fix.no_fix(t, f"{EDGE_REASON} (the prior may be too confident)", self.name)
+            if self.ambiguity_mass < 1.0:
+                amb = _ambiguity(l2, surf.n, surf.e, ki, kj)
+                if amb[0] > self.ambiguity_mass:
+                    return Fix.no_fix(
+                        t,
+                        f"ambiguous: {amb[1]} likelihood peaks in the search window, {100 * amb[0]:.0f} % of the "
+                        f"likelihood off the best one (nearest {amb[2]:.0f} m away)",
+                        self.name,
+                        float(pk),
+                    )
         else:
             p = np.exp(logl - lmax)
             p /= p.sum()
             pk = float(p[k])
-            n_fix, e_fix = float(surf.n[k]), float(surf.e[k])
         score = float(pk)
         if self.method == "mlr":
             if grid:
@@ -395,14 +474,158 @@ class LikelihoodMatcher:
         cov = cov + np.eye(2) * self.min_fix_sigma_m**2
         max_sig = self.max_fix_sigma_m
         if max_sig is None:
-            max_sig = 0.25 * min(surf.half)
+            max_sig = 0.25 * min(surf.half) / surf.grow
         sig = float(np.sqrt(np.linalg.eigvalsh(cov)[-1]))
         if sig > max_sig:
             return Fix.no_fix(
                 t, f"likelihood too spread: fix sigma {sig:.3g} m above {max_sig:.3g} m", self.name, score
             )
+        self._issued(surf)
         lat, lon = surf.frame.to_latlon(n_fix, e_fix)
         return Fix(t, float(lat), float(lon), cov, True, "", score, self.name)
+
+    # ------------------------------------------------------------------ honesty
+    def temperature(self, surf: Surface, n_fix: float, e_fix: float) -> float:
+        """The factor (>= 1) the scan's log-likelihood is divided by before its moments are taken (class
+        docstring): the sandwich factor of the correlated section covariance
+        (:func:`~.map_error.likelihood_temperature`) times the section's misfit per degree of freedom when that
+        exceeds 1 (the residuals at the fix are larger than sensor + map error say)."""
+        sec = surf.section
+        if sec is None or sec.dn.size == 0:
+            return 1.0
+        frame = surf.frame
+        pn, pe = sec.dn + n_fix, sec.de + e_fix
+        k = pn.size
+        c = sec.z.shape[1]
+        h = max(float(surf.step), 1e-3)
+        m0 = np.asarray(frame.sample(pn, pe, sec.h_last), float).reshape(k, c)
+        jac = np.empty((k, c, 2))
+        jac[:, :, 0] = (
+            np.asarray(frame.sample(pn + h, pe, sec.h_last), float).reshape(k, c)
+            - np.asarray(frame.sample(pn - h, pe, sec.h_last), float).reshape(k, c)
+        ) / (2 * h)
+        jac[:, :, 1] = (
+            np.asarray(frame.sample(pn, pe + h, sec.h_last), float).reshape(k, c)
+            - np.asarray(frame.sample(pn, pe - h, sec.h_last), float).reshape(k, c)
+        ) / (2 * h)
+        jac = np.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0)
+        lat, lon = frame.to_latlon(pn, pe)
+        sm = sec.error.sigma_at(lat, lon)
+        diff = self.difference and k > 1
+        node_var = max(surf.sigma2 / (2.0 if diff else 1.0) - sec.s2_base, 0.0)
+        sigma = section_covariance(pn, pe, sm, sec.sigma_sensor, sec.error.correlation_m)
+        sigma[np.diag_indices(k)] += node_var
+        if sec.drift_mps is not None and sec.tau is not None and sec.tau.size == k:
+            for a in range(2):  # INS drift over the section: delta p_k = dv (t_k - t_K), rank one per axis
+                g = jac[:, :, a].sum(axis=1) * sec.tau * float(sec.drift_mps[a])
+                sigma += np.outer(g, g)
+        tr = section_transform(k, self.demean, self.difference)
+        kappa = likelihood_temperature(jac, sigma, surf.sigma2, tr)
+        resid = sec.z - m0
+        phi = 1.0
+        if np.all(np.isfinite(resid)):
+            chi2, dof = whitened_misfit(resid, sigma, tr)
+            if dof > 0 and chi2 > float(stats.chi2.ppf(MISFIT_PROBABILITY, dof)):
+                phi = chi2 / dof
+        return float(kappa * phi)
+
+    def _overlap_factor(self, surf: Surface) -> float:
+        """``K / (readings newer than the last issued fix)`` when this window shares readings with the window of
+        the previous fix this matcher issued on the same stream (``match_every < window``), else 1."""
+        sec = surf.section
+        if not self.count_overlap or sec is None or sec.t is None or sec.t.size == 0:
+            return 1.0
+        t = sec.t
+        last = self._last_fix_t
+        if not (np.isfinite(last) and t[-1] > last and t[0] <= last):
+            return 1.0
+        new = int(np.sum(t > last))
+        return float(t.size) / max(new, 1)
+
+    def _issued(self, surf: Surface) -> None:
+        sec = surf.section
+        if sec is not None and sec.t is not None and sec.t.size:
+            self._last_fix_t = float(sec.t[-1])
+
+
+def _flat_sigma2(surf: Surface, difference: bool) -> float:
+    """The variance the flat-map test compares the map's feature variability with: the scan's, without the map
+    error (a map with large errors is not flat; what it is worth is the temperature's business)."""
+    sec = surf.section
+    if sec is None:
+        return float(surf.sigma2)
+    map_var = max(sec.s2_base - sec.sigma_sensor**2, 0.0)
+    k = 2.0 if (difference and sec.dn.size > 1) else 1.0
+    return max(float(surf.sigma2) - k * map_var, k * sec.sigma_sensor**2)
+
+
+#: the section's misfit at the fix scales the covariance only when its chi-square exceeds this quantile (a model
+#: that under-states the residuals, not a chance fluctuation of a right one)
+MISFIT_PROBABILITY = 0.99
+
+#: a peak's region: where the (tempered) log-likelihood is within this of its maximum, the 99.9 % region of a
+#: 2-D Gaussian (chi-square 2 dof quantile 13.8, halved)
+HPD_LOG_DROP = 0.5 * 13.8155
+
+
+def _ambiguity(l2: FloatArray, n_ax: FloatArray, e_ax: FloatArray, ki: int, kj: int) -> tuple[float, int, float]:
+    """Multi-modality of a tempered log-likelihood grid ``l2`` (peak 0 at node ``(ki, kj)``): the region where it
+    is within :data:`HPD_LOG_DROP` of the peak, split into 8-connected parts. Returns (normalised likelihood mass
+    in the parts other than the peak's, number of parts, distance m from the peak to the nearest node of another
+    part; inf if none)."""
+    mask = l2 >= -HPD_LOG_DROP
+    lab, count = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
+    if count <= 1:
+        return 0.0, int(count), float("inf")
+    p = np.exp(np.where(np.isfinite(l2), l2, -np.inf))
+    tot = float(p.sum())
+    main = lab[ki, kj]
+    other = (lab > 0) & (lab != main)
+    mass = float(p[other].sum() / tot) if tot > 0 else 0.0
+    oi, oj = np.nonzero(other)
+    d = float(np.min(np.hypot(n_ax[oi] - n_ax[ki], e_ax[oj] - e_ax[kj]))) if oi.size else float("inf")
+    return mass, int(count), d
+
+
+def _reaches_edge(l2: FloatArray, ki: int, kj: int) -> bool:
+    """True when the peak's region (as in :func:`_ambiguity`) touches the border of the scanned window: the
+    likelihood goes on beyond it and its moments would be truncated."""
+    mask = l2 >= -HPD_LOG_DROP
+    lab, _ = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
+    main = lab[ki, kj]
+    if main == 0:
+        return False
+    border = np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]])
+    return bool(np.any(border == main))
+
+
+def ins_drift_rate(t: FloatArray, cov_ne: FloatArray | None) -> FloatArray:
+    """Per-axis (north, east) rate m/s at which the INS position 1-sigma grew within a window, from the fuser's
+    covariance at each reading (``cov_ne`` (K, 2, 2) m^2 at times ``t`` (K,) s): the largest
+    ``d sqrt(P_aa) / dt`` between successive readings. ``|d sigma_p / dt| = |P_pv| / sigma_p <= sigma_v``, so it is
+    a lower bound of the INS velocity error 1-sigma, tight once the position error is velocity-driven; zeros when
+    unknown."""
+    if cov_ne is None or len(t) < 2:
+        return np.zeros(2)
+    sd = np.sqrt(np.maximum(np.stack([cov_ne[:, 0, 0], cov_ne[:, 1, 1]], axis=1), 0.0))
+    dt = np.diff(np.asarray(t, float))
+    ok = dt > 0
+    if not np.any(ok):
+        return np.zeros(2)
+    rate = np.diff(sd, axis=0)[ok] / dt[ok, None]
+    rate = np.where(np.isfinite(rate), rate, 0.0)
+    return np.maximum(rate.max(axis=0), 0.0)
+
+
+def _section_times(t: FloatArray, dn: FloatArray, de: FloatArray) -> FloatArray | None:
+    """Time (s, <= 0) of each section reading relative to the last; for a distance-resampled section (other
+    length than ``t``) the times are taken proportional to the travelled distance."""
+    if dn.size == t.size:
+        return t - t[-1]
+    if dn.size < 2 or t.size < 2:
+        return None
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(dn), np.diff(de)))])
+    return (s - s[-1]) / max(s[-1], 1e-9) * (t[-1] - t[0])
 
 
 def _bin_mass(p: FloatArray, surf: Surface, bin_size_m: float) -> FloatArray:

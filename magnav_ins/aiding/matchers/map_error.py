@@ -2,12 +2,39 @@
 
 A reading ``z`` at the true position ``x`` differs from the map prediction ``m(x)`` by the sensor noise *and* the
 map error: ``z - m(x) = v_sensor + e_map(x)``, so every matcher's likelihood uses the variance
-``sigma_sensor^2 + sigma_map(x)^2``. The map error is spatially correlated (correlation length ``ell``): readings
-closer together than ``ell`` share most of their map error and are not independent evidence.
+``sigma_sensor^2 + sigma_map(x)^2``. The map error is spatially correlated: readings closer together than its
+correlation length ``ell`` share most of their map error and are not independent evidence.
 
-:func:`resolve_map_error` picks, in this order: a matcher's explicit ``map_sigma`` option (the user's number, kept
-for old scenarios), the map's error layer (:attr:`GridMap.has_error_layer`, estimated by cross-validation when a
-survey is gridded), else the stated default below for a map that does not know its error.
+Where the map error comes from (:func:`resolve_map_error`), in this order: a matcher's explicit ``map_sigma``
+option (the user's number, kept for old scenarios), the map's error layer (:attr:`GridMap.has_error_layer`,
+estimated by cross-validation when a survey is gridded), else the stated default below for a map that does not
+know its error.
+
+The default (a map from elsewhere, no layer): 1-sigma ``DEFAULT_ERROR_FRACTION_OF_STD`` (10 %) of the map's own
+standard deviation, uniform, correlated over ``DEFAULT_CORRELATION_NODES`` (1.5) node spacings. Evidence: the 22
+Osborne tie lines (``builtin:osborne-tie-lines``, never used by ``builtin:osborne-magnetic``) differ from that map
+by 4-48 nT RMS after removing each line's mean (all lines: 30 nT; the map's standard deviation is 302 nT, so 10 %),
+and their along-line autocorrelation follows the Gaussian kernel below with ``ell`` = 150 m = 1.5 node spacings
+(0.75 at 100 m, 0.39 at 200 m, 0.06 at 350 m). A map that is not a grid (a road map's points, :class:`~magnav_ins.maps.track.TrackMap`)
+is sampled where it was measured, not interpolated: without ``map_sigma`` it is taken as exact. It is one
+survey's figure, not a law: a map whose error is known
+should carry a layer, or the matcher should be given ``map_sigma``.
+
+Correlation model. The map error is a zero-mean Gaussian process with the squared-exponential correlation
+``rho(d) = exp(-d^2 / (2 ell^2))`` (the same kernel as :func:`magnav_ins.maps.synthetic.gaussian_random_field`,
+so a synthetic map error drawn there with ``correlation_length_m = ell`` is exactly this model). For a section of
+``K`` readings at positions ``(n_k, e_k)`` the residuals ``z_k - m(x_k)`` then have the covariance (the "full
+covariance" of a section)::
+
+    Sigma = sigma_s^2 I + D C D,   C_ij = rho(|x_i - x_j|),   D = diag(sigma_map(x_k))
+
+:func:`section_covariance` builds it; :func:`sandwich_covariance` gives the covariance of a position estimated
+from a likelihood that *assumed* independent readings (the scan's cheap diagonal likelihood) when the residuals
+really have ``Sigma`` (the "sandwich" ``A^-1 B A^-1`` of a misspecified least-squares fit, linearised at the
+estimate; White 1982, eq. 2.5 / the robust covariance of quasi-likelihood); :func:`likelihood_temperature` turns
+it into the factor by which that likelihood's log must be divided to be honest; :func:`effective_count` is the
+number of independent readings a correlated section is worth. Recursive filters, which take one reading at a time,
+use the first-order Markov approximation :func:`markov_coefficient` with the same integral scale.
 """
 
 from __future__ import annotations
@@ -23,8 +50,11 @@ FloatArray = NDArray[np.float64]
 
 #: A map without an error layer: 1-sigma map error = this fraction of the map's standard deviation ...
 DEFAULT_ERROR_FRACTION_OF_STD = 0.10
-#: ... with a correlation length of this many node spacings (a grid cannot resolve shorter errors).
-DEFAULT_CORRELATION_NODES = 2.0
+#: ... with a correlation length of this many node spacings (module docstring: the Osborne tie lines give 150 m on
+#: a 100 m grid).
+DEFAULT_CORRELATION_NODES = 1.5
+#: integral scale of the squared-exponential correlation, in units of ``ell``: int_0^inf rho(d) dd = ell sqrt(pi/2)
+INTEGRAL_SCALE = float(np.sqrt(np.pi / 2.0))
 
 
 @dataclass(frozen=True)
@@ -32,7 +62,8 @@ class MapErrorModel:
     """Where the matcher's map error comes from: ``source`` is ``"option"``, ``"layer"`` or ``"default"``.
 
     ``uniform_sigma`` (map unit) is set for ``option`` / ``default``; for ``layer`` the sigma varies by position
-    (:meth:`sigma_at`). ``correlation_m`` is the error's correlation length (m), NaN when unknown."""
+    (:meth:`sigma_at`). ``correlation_m`` is the error's correlation length ``ell`` (m) of the kernel in the module
+    docstring; NaN when unknown (then readings are taken as uncorrelated)."""
 
     source: str
     uniform_sigma: float
@@ -50,8 +81,17 @@ class MapErrorModel:
             s = np.where(np.isfinite(s), s, float(np.nanmax(self.fmap.error_sigma)))  # type: ignore[union-attr]
         return s
 
+    def describe(self) -> str:
+        """One line for reasons and logs: where the map error came from and its size."""
+        ell = f"{self.correlation_m:.0f} m" if np.isfinite(self.correlation_m) else "unknown"
+        if self.source == "layer":
+            return f"map error from the map's layer, correlation {ell}"
+        return f"map error {self.uniform_sigma:.3g} ({self.source}), correlation {ell}"
+
 
 def _default_for(fmap: FieldMap) -> tuple[float, float]:
+    if getattr(fmap, "spacing_m", None) is None:  # not a grid (a road map's points): sampled, not interpolated
+        return 0.0, float("nan")
     vals = np.asarray(getattr(fmap, "values", np.array([np.nan])), dtype=float)
     std = float(np.nanstd(vals)) if np.any(np.isfinite(vals)) else float("nan")
     spacing = getattr(fmap, "spacing_m", None)
@@ -63,7 +103,9 @@ def resolve_map_error(
     fmap: FieldMap, map_sigma: float | None = None, correlation_m: float | None = None
 ) -> MapErrorModel:
     """The map error a matcher should use (module docstring): ``map_sigma`` (map unit, > 0) overrides the map's
-    layer; ``correlation_m`` overrides the correlation length."""
+    layer; ``correlation_m`` (m, > 0) overrides the correlation length."""
+    if correlation_m is not None and not correlation_m > 0:
+        correlation_m = None
     if map_sigma is not None and map_sigma > 0:
         corr = correlation_m if correlation_m is not None else getattr(fmap, "error_correlation_m", None)
         if corr is None:
@@ -74,3 +116,121 @@ def resolve_map_error(
         return MapErrorModel("layer", float("nan"), float(corr), fmap)
     sig, corr = _default_for(fmap)
     return MapErrorModel("default", sig, float(correlation_m) if correlation_m is not None else corr)
+
+
+# ------------------------------------------------------------------------------------------------ correlation
+def correlation(d_m: ArrayLike, ell_m: float) -> FloatArray:
+    """Map-error correlation ``exp(-d^2 / (2 ell^2))`` at distance ``d_m`` (m); with an unknown (NaN) or zero
+    ``ell_m`` the errors are uncorrelated (1 at d = 0, else 0)."""
+    d = np.asarray(d_m, dtype=float)
+    if not (np.isfinite(ell_m) and ell_m > 0):
+        return (d == 0.0).astype(float)
+    return np.exp(-0.5 * (d / ell_m) ** 2)
+
+
+def correlation_matrix(n: ArrayLike, e: ArrayLike, ell_m: float) -> FloatArray:
+    """``C_ij = rho(|x_i - x_j|)`` (K, K) for points at north ``n``, east ``e`` (K,) m."""
+    n = np.asarray(n, dtype=float).ravel()
+    e = np.asarray(e, dtype=float).ravel()
+    d = np.hypot(n[:, None] - n[None, :], e[:, None] - e[None, :])
+    return correlation(d, ell_m)
+
+
+def section_covariance(
+    n: ArrayLike, e: ArrayLike, sigma_map: ArrayLike, sigma_sensor: float, ell_m: float
+) -> FloatArray:
+    """Covariance (K, K), map unit squared, of the residuals ``z_k - m(x_k)`` of a section of readings at
+    ``(n, e)`` m: ``sigma_sensor^2 I + D C D`` with ``D = diag(sigma_map)`` (module docstring)."""
+    s = np.broadcast_to(np.asarray(sigma_map, dtype=float).ravel(), (np.size(n),))
+    c = correlation_matrix(n, e, ell_m)
+    return float(sigma_sensor) ** 2 * np.eye(len(s)) + s[:, None] * c * s[None, :]
+
+
+def effective_count(n: ArrayLike, e: ArrayLike, ell_m: float) -> float:
+    """Number of independent readings a section at ``(n, e)`` m is worth for estimating a common offset:
+    ``K^2 / sum_ij C_ij`` (1 for readings on top of each other, K for readings much farther apart than ``ell``)."""
+    c = correlation_matrix(n, e, ell_m)
+    return float(c.shape[0] ** 2 / np.sum(c)) if c.size else 0.0
+
+
+def markov_coefficient(ds_m: ArrayLike, ell_m: float) -> FloatArray:
+    """Correlation between successive readings ``ds_m`` (m) apart in a first-order Gauss-Markov approximation of
+    the map error along a track, ``exp(-ds / L)`` with ``L = ell sqrt(pi/2)`` so that its integral scale equals the
+    squared-exponential kernel's (a long section is then worth the same number of independent readings). 0 when
+    ``ell`` is unknown."""
+    ds = np.abs(np.asarray(ds_m, dtype=float))
+    if not (np.isfinite(ell_m) and ell_m > 0):
+        return np.zeros_like(ds)
+    return np.exp(-ds / (INTEGRAL_SCALE * ell_m))
+
+
+# ------------------------------------------------------------------------------------------------ sandwich
+def section_transform(k: int, demean: bool, difference: bool) -> FloatArray:
+    """The linear map ``T`` a likelihood matcher applies to a section's residuals: successive differences
+    ``(K-1, K)`` if ``difference``, then the removal of the mean if ``demean`` (identity otherwise)."""
+    t = np.eye(k)
+    if difference and k > 1:
+        t = np.diff(t, axis=0)
+    if demean and t.shape[0] > 1:
+        t = t - t.mean(axis=0, keepdims=True)
+    return t
+
+
+def sandwich_covariance(jac: ArrayLike, sigma: ArrayLike, transform: ArrayLike | None = None) -> FloatArray:
+    """Covariance (2, 2) m^2 of the offset that minimises ``|T (z - m(x + p))|^2`` when the residuals have the
+    covariance ``sigma`` (K, K): ``A^-1 B A^-1`` with ``A = J' T' T J``, ``B = J' T' (T Sigma T') T J``, ``J``
+    (K, 2) or (K, c, 2) the map gradient (unit/m, north/east) at the readings (components independent, each with
+    ``sigma``), linearised at the estimate. Infinite when the section does not constrain both directions."""
+    j = np.asarray(jac, dtype=float)
+    j = j.reshape(j.shape[0], -1, 2)
+    s = np.asarray(sigma, dtype=float)
+    t = np.eye(j.shape[0]) if transform is None else np.asarray(transform, dtype=float)
+    tst = t @ s @ t.T
+    a = np.zeros((2, 2))
+    b = np.zeros((2, 2))
+    for c in range(j.shape[1]):
+        tj = t @ j[:, c, :]
+        a += tj.T @ tj
+        b += tj.T @ tst @ tj
+    if not np.all(np.isfinite(a)) or np.linalg.cond(a) > 1e12:
+        return np.full((2, 2), np.inf)
+    ai = np.linalg.inv(a)
+    out = ai @ b @ ai
+    return 0.5 * (out + out.T)
+
+
+def likelihood_temperature(
+    jac: ArrayLike, sigma: ArrayLike, s2_assumed: float, transform: ArrayLike | None = None
+) -> float:
+    """How much a likelihood that assumed independent residuals of variance ``s2_assumed`` over-states its
+    information: the largest eigenvalue of ``(s2 A^-1)^-1 (A^-1 B A^-1)`` (:func:`sandwich_covariance`), i.e. the
+    factor by which its covariance ``s2 A^-1`` must grow to cover the sandwich in every direction. Dividing the
+    log-likelihood by it gives a surface whose curvature is the honest one at the peak. At least 1; 1 when the
+    section does not constrain both directions (nothing to say)."""
+    j = np.asarray(jac, dtype=float)
+    j = j.reshape(j.shape[0], -1, 2)
+    t = np.eye(j.shape[0]) if transform is None else np.asarray(transform, dtype=float)
+    a = np.zeros((2, 2))
+    for c in range(j.shape[1]):
+        tj = t @ j[:, c, :]
+        a += tj.T @ tj
+    sw = sandwich_covariance(j, sigma, t)
+    if not np.all(np.isfinite(sw)):
+        return 1.0
+    # generalised eigenproblem sw v = lam (s2 A^-1) v  <=>  lam = eig(A sw) / s2
+    lam = np.linalg.eigvals(a @ sw).real / float(s2_assumed)
+    return float(max(1.0, np.max(lam)))
+
+
+def whitened_misfit(residual: ArrayLike, sigma: ArrayLike, transform: ArrayLike | None = None) -> tuple[float, int]:
+    """``(chi2, dof)`` of a section's residuals (K,) or (K, c) at the estimate under the covariance ``sigma``
+    (K, K) per component, after the matcher's transform ``T``: ``r' T' (T Sigma T')^+ T r`` with the pseudo-inverse
+    over the rank of ``T Sigma T'``; ``dof`` = that rank times the components, minus the 2 fitted offsets."""
+    r = np.asarray(residual, dtype=float)
+    r = r.reshape(r.shape[0], -1)
+    t = np.eye(r.shape[0]) if transform is None else np.asarray(transform, dtype=float)
+    w, v = np.linalg.eigh(t @ np.asarray(sigma, dtype=float) @ t.T)
+    keep = w > 1e-10 * max(float(np.max(w)), 1e-300)
+    proj = v[:, keep].T @ (t @ r)  # (rank, c)
+    chi2 = float(np.sum(proj**2 / w[keep][:, None]))
+    return chi2, int(keep.sum() * r.shape[1]) - 2

@@ -1,7 +1,7 @@
 """Particle filters: MagNavigate (Shockley 2012, seed 003, ch. V; Raquet, Shockley & Fisher, seed 000, sec. 3.3)
-and an INS-driven variant.
+and an INS-driven variant, with a likelihood that knows the map's error and fixes that carry only new information.
 
-State per particle, in metres north/east of the initial position (a :class:`~._local.LocalFrame`):
+State per particle, in metres north/east of a :class:`~._local.LocalFrame` about the prior the cloud was drawn from:
 
 * ``dynamics="gauss_markov"`` (MagNavigate): position, velocity and acceleration per axis; the acceleration is a
   first-order Gauss-Markov process ``da/dt = -a / tau + w`` with ``tau = 2 s`` and steady-state ``sigma = 5 m/s^2``
@@ -9,24 +9,63 @@ State per particle, in metres north/east of the initial position (a :class:`~._l
   ``tau / 4``).
 * ``dynamics="ins"``: particles move with the INS displacement between predictions (the trapezoid of the INS
   velocities of the priors handed to :meth:`ParticleFilter.predict`; velocities rather than positions so that a
-  fuser's position corrections between two predictions do not move the cloud again) plus a random walk
+  fuser's position corrections between two predictions do not move the cloud again) plus each particle's own INS
+  velocity error ``dv`` (drawn with the position from the prior's joint position / velocity covariance, constant
+  between fixes: over tens of seconds the INS velocity error is a bias, not white noise) plus a random walk
   ``ins_sigma`` m/sqrt(s).
 
-Initialisation: ``n_particles`` (500) uniform in a disc of ``init_radius_m`` (50 m) about the prior position
-(003 sec. 5.1), or Gaussian from the prior covariance (``init="gaussian"``).
+Initialisation: ``n_particles`` (500) from the prior's covariance (``init="gaussian"``, the default: the cloud
+must cover where the fuser thinks it may be), or uniform in a disc of ``init_radius_m`` (50 m) about the prior
+position as in the thesis (``init="disc"``, 003 sec. 5.1). A Gaussian draw is moment-matched (shifted and scaled so
+that its sample mean and covariance are exactly the prior's), so that the fix below is not made of sampling noise.
 Road penalisation (003 sec. 5.2): with a ``road`` map (anything with ``nearest(lat, lon) -> (idx, dist, s)``, e.g.
 :class:`~magnav_ins.maps.track.TrackMap`), every prediction multiplies the weights by
 ``N(d; 0, road_sigma_m^2)`` of the distance to the nearest road point (6 m).
-Measurement update: ``measurement="field"`` weights by the Gaussian likelihood of the reading (scalar or 3-axis,
-``z = [Bx, By, Bz]``) at each particle; ``"fix"`` runs ``fix_matcher`` (ML by default) on the reading with the
-particle cloud as prior and weights by ``N(z = [pN, pE]; p, R)``. SIR: systematic resampling when the effective
-sample size ``1 / sum w^2`` drops below ``resample_threshold * n_particles`` (default 0.5; 1.0 = every update, as
-in the thesis), with roughening (``roughening``: a Gaussian kernel of Silverman's bandwidth ``h`` and Liu-West
-shrinkage ``a = sqrt(1 - h^2)`` towards the mean, which keeps the cloud's mean and covariance; the covariance gets a
-floor ``roughen_min_m^2``) against sample impoverishment when the likelihood is much sharper than the cloud.
-Output: weighted mean and covariance -> :class:`Fix` ("no fix" when the last update was off the map, on a flat
-map (the feature variability, Wang eq. 14, of a 9 x 9 stencil of half-width ``max(2 sigma_cloud, flat_window_m)``
-about the cloud mean below ``min_variability`` reading sigmas) or had a NaN reading).
+
+Measurement update (``measurement="field"``). A reading is ``z = m(x) + c + b(x) + v``: the map at the particle,
+an unknown level offset ``c`` between readings and map (levelling, diurnal variation, the platform's own field:
+the tie lines of the Osborne survey sit 17-30 nT off its flight lines), the map error ``b`` and the sensor noise
+``v`` (``readings.sigma``). The map error has the 1-sigma of the map's error layer at the particle (or
+``map_sigma``, or the stated default: :func:`~.map_error.resolve_map_error`) and is correlated along the track:
+each particle carries a two-state Kalman filter for ``(c, b)`` (Rao-Blackwellised: the weights use the marginal
+likelihood ``N(z - m(x); c_hat + b_hat, S)``), with ``b`` a first-order Gauss-Markov process in the distance the
+particle moved (:func:`~.map_error.markov_coefficient`: readings inside one correlation length share their map
+error and are not counted as independent evidence). ``level_sigma``: None (default) = the level is unknown (a
+diffuse prior, the recursive form of a likelihood matcher's ``demean``), 0 = no offset, else its 1-sigma. The first
+reading after an initiation then only sets the level. ``measurement="fix"`` runs ``fix_matcher`` (ML by default)
+on the reading with the particle cloud as prior and weights by ``N(z = [pN, pE]; p, R)``.
+
+SIR: systematic resampling when the effective sample size ``1 / sum w^2`` drops below
+``resample_threshold * n_particles`` (default 0.5; 1.0 = every update, as in the thesis), with roughening
+(``roughening``: a Gaussian kernel of Silverman's bandwidth ``h`` and Liu-West shrinkage ``a = sqrt(1 - h^2)``
+towards the mean, which keeps the cloud's mean and covariance; the covariance gets a floor ``roughen_min_m^2``)
+against sample impoverishment when the likelihood is much sharper than the cloud.
+
+Output (:meth:`ParticleFilter.to_fix`).
+
+* ``fix_output="increment"`` (default): the information the readings added since the cloud was drawn, as an
+  equivalent measurement of the current position (the "tracklet" of distributed tracking; Drummond 1997): with the
+  cloud's weighted moments ``(mu, P)`` and the moments ``(mu0, P0)`` the cloud would have without any reading (the
+  prior's Gaussian, propagated by the same linear dynamics), ``R = (P^-1 - P0^-1)^-1``,
+  ``z = R (P^-1 mu - P0^-1 mu0)``. A fuser can take it as an independent measurement: the prior it came from is
+  divided out. After a fix is issued the next :meth:`ParticleFilter.predict` draws a new cloud from the fuser's
+  estimate (which holds the fix if the fuser accepted it), so no reading is ever reported twice. Feeding the
+  cloud's posterior itself to a fuser at every reading (what this filter did before) counts the prior and every
+  earlier reading again at each fix: on the Osborne tie line 10152 (tactical IMU, real readings) that took the
+  filter to 28 km error with 1 m sigmas.
+* ``fix_output="posterior"``: the cloud's weighted mean and covariance (the thesis' stand-alone navigator,
+  Shockley 003 ch. V; the cloud is never re-drawn).
+
+"No fix" (with the reason, and the cloud is kept) when the last update was off the map, on a flat map (the feature
+variability, Wang eq. 14, of a 9 x 9 stencil of half-width ``max(2 sigma_cloud, flat_window_m)`` about the cloud
+mean below ``min_variability`` sensor sigmas) or had a NaN reading; when the cloud is not unimodal (more than
+``ambiguity_mass`` of its weight more than 3 sigma, Mahalanobis, from its mean: a Gaussian has 1.1 %); and in the
+increment mode when the readings did not add information in both directions (``P^-1 - P0^-1`` not positive
+definite) or the fix 1-sigma would exceed ``max_fix_sigma_m`` (default: the prior's own 1-sigma).
+
+The fix covariance contains: sensor noise, the map error (variance and along-track correlation), the unknown level,
+the INS velocity error and random walk over the time since the cloud was drawn (all through the particles'
+weights), and the cloud's shape (multi-modality beyond the ambiguity limit gives no fix).
 """
 
 from __future__ import annotations
@@ -42,15 +81,30 @@ from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ._local import LocalFrame, feature_variability, map_components, sample_map
+from .map_error import MapErrorModel, markov_coefficient, resolve_map_error
 
 FloatArray = NDArray[np.float64]
+
+#: chi-square (2 dof) of the 3-sigma Mahalanobis radius used by the cloud's unimodality test; a Gaussian cloud
+#: holds exp(-9/2) = 1.1 % of its weight beyond it
+_CLOUD_TAIL_CHI2 = 9.0
+#: an increment is issued only if the cloud's mean and the increment are within the 99.9 % region (chi-square 2 dof)
+#: of the prior the cloud was drawn from: otherwise the likelihood peaks where there are no particles
+_PRIOR_CONSISTENCY_CHI2 = 13.8155
 
 
 @dataclass
 class ParticleState:
-    """Particles in metres north/east of ``frame``'s origin: ``pos``, ``vel``, ``acc`` (M, 2), log weights
-    ``logw`` (M,) (normalised), time ``t`` s, height ``h`` m, the INS position of the last prior ``ins_ne`` (2,),
-    the effective sample size ``neff``, the random generator ``rng`` driving the process noise, the reason of the last rejected update (``""`` if it was used)."""
+    """Particles in metres north/east of ``frame``'s origin: ``pos``, ``vel``, ``acc`` (M, 2), the INS velocity
+    error ``dv`` (M, 2) (``dynamics="ins"``), log weights ``logw`` (M,) (normalised), time ``t`` s, height ``h`` m,
+    the INS position of the last prior ``ins_ne`` (2,), the effective sample size ``neff``, the random generator
+    ``rng``, the reason of the last rejected update (``""`` if it was used).
+
+    Per particle and field component, the level / map-error filter: means ``lev`` and ``err`` (M, c) and
+    covariance ``p_ll``, ``p_le``, ``p_ee`` (M, c); ``lev_set`` False until the first reading has set an unknown
+    level. ``prior_mean`` (d,) and ``prior_cov`` (d, d) are the cloud's moments without readings (the linear
+    state: ``[pN, pE, dvN, dvE]`` for INS dynamics, ``[pN, vN, aN, pE, vE, aE]`` for Gauss-Markov); ``issued`` is
+    set by :meth:`ParticleFilter.to_fix` when it issues an increment (the next prediction re-draws the cloud)."""
 
     t: float
     frame: LocalFrame
@@ -65,6 +119,18 @@ class ParticleState:
     reason: str = "no update yet"
     resampled: int = 0
     extra: dict[str, float] = field(default_factory=dict)
+    dv: FloatArray | None = None
+    lev: FloatArray | None = None
+    err: FloatArray | None = None
+    p_ll: FloatArray | None = None
+    p_le: FloatArray | None = None
+    p_ee: FloatArray | None = None
+    lev_set: bool = False
+    prior_mean: FloatArray | None = None
+    prior_cov: FloatArray | None = None
+    issued: bool = False
+    readings: int = 0
+    p_vv: FloatArray | None = None
 
 
 @nb.njit(cache=True)
@@ -89,27 +155,74 @@ def _normalise(logw: FloatArray) -> FloatArray:
     return logw - mx - np.log(w.sum())
 
 
+def _moment_match(x: FloatArray, mean: FloatArray, cov: FloatArray) -> FloatArray:
+    """Affine transform of the sample ``x`` (M, d) so that its mean and (1/M) covariance are exactly ``mean``,
+    ``cov`` (d, d)."""
+    d = x - x.mean(axis=0)
+    s = d.T @ d / len(x)
+    try:
+        ls = np.linalg.cholesky(s)
+        lc = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        return x
+    return mean + (lc @ np.linalg.solve(ls, d.T)).T
+
+
+def _psd_part(a: FloatArray) -> FloatArray:
+    """The positive semi-definite part of a symmetric matrix (negative eigenvalues set to 0)."""
+    a = 0.5 * (a + a.T)
+    w, v = np.linalg.eigh(a)
+    return (v * np.maximum(w, 0.0)) @ v.T
+
+
+def _gm_transition(h: float, tau: float, sigma: float) -> tuple[FloatArray, FloatArray]:
+    """One Gauss-Markov sub-step of length ``h`` (s) as the particles take it, per axis on ``[p, v, a]``:
+    ``a' = phi a + w``, ``p' = p + v h + (2 a + a') h^2 / 6``, ``v' = v + (a + a') h / 2`` with
+    ``phi = exp(-h / tau)``, ``w ~ N(0, sigma^2 (1 - phi^2))``. Returns (F (3, 3), Q (3, 3))."""
+    phi = np.exp(-h / tau)
+    sd = sigma * np.sqrt(1.0 - phi**2)
+    f = np.array([[1.0, h, (2.0 + phi) * h * h / 6.0], [0.0, 1.0, (1.0 + phi) * h / 2.0], [0.0, 0.0, phi]])
+    g = np.array([h * h / 6.0, h / 2.0, 1.0]) * sd
+    return f, np.outer(g, g)
+
+
 @dataclass
 class ParticleFilter:
-    """MagNavigate / INS-driven particle filter (module docstring)."""
+    """MagNavigate / INS-driven particle filter (module docstring).
+
+    Parameters (SI; field values in the map's unit): ``n_particles``; ``dynamics`` "gauss_markov" | "ins";
+    ``tau_s``, ``accel_sigma`` (Gauss-Markov acceleration); ``ins_sigma`` INS random walk (m/sqrt(s));
+    ``ins_velocity`` draw each particle's INS velocity error from the prior's covariance; ``init`` "gaussian" |
+    "disc" and ``init_radius_m``; ``road``, ``road_sigma_m``; ``measurement`` "field" | "fix" and
+    ``fix_matcher``; ``map_sigma`` (map error 1-sigma overriding the map's layer; 0 = from the map) and
+    ``map_correlation_m`` (overrides the map's correlation length); ``level_sigma`` (None = unknown level);
+    ``resample_threshold``, ``roughening``, ``roughen_min_m``; ``min_variability`` and ``flat_window_m`` (flat-map
+    test); ``fix_output`` "increment" | "posterior"; ``ambiguity_mass``; ``max_fix_sigma_m``."""
 
     n_particles: int = 500
     dynamics: str = "gauss_markov"
     tau_s: float = 2.0
     accel_sigma: float = 5.0
     ins_sigma: float = 0.5
-    init: str = "disc"
+    ins_velocity: bool = True
+    init: str = "gaussian"
     init_radius_m: float = 50.0
     road: Any = None
     road_sigma_m: float = 6.0
     measurement: str = "field"
     fix_matcher: Any = None
     map_sigma: float = 0.0
+    map_correlation_m: float | None = None
+    level_sigma: float | None = None
     resample_threshold: float = 0.5
     min_variability: float = 0.5
     flat_window_m: float = 10.0
     roughening: bool = True
     roughen_min_m: float = 0.1
+    fix_output: str = "increment"
+    ambiguity_mass: float = 0.05
+    max_fix_sigma_m: float | None = None
+    prior_inflation: float = 1.5
     name: str = "particle"
 
     def __post_init__(self) -> None:
@@ -121,11 +234,17 @@ class ParticleFilter:
             raise ConfigError(f"particle 'init': expected 'disc' or 'gaussian', got {self.init!r}")
         if self.measurement not in ("field", "fix"):
             raise ConfigError(f"particle 'measurement': expected 'field' or 'fix', got {self.measurement!r}")
+        if self.fix_output not in ("increment", "posterior"):
+            raise ConfigError(f"particle 'fix_output': expected 'increment' or 'posterior', got {self.fix_output!r}")
         if not 0.0 <= self.resample_threshold <= 1.0:
             raise ConfigError(f"particle 'resample_threshold': expected 0..1, got {self.resample_threshold!r}")
-        for key in ("tau_s", "accel_sigma", "ins_sigma", "init_radius_m", "road_sigma_m"):
+        for key in ("tau_s", "accel_sigma", "ins_sigma", "init_radius_m", "road_sigma_m", "prior_inflation"):
             if not getattr(self, key) > 0:
                 raise ConfigError(f"particle '{key}': expected > 0, got {getattr(self, key)!r}")
+        if self.map_sigma < 0 or (self.level_sigma is not None and self.level_sigma < 0):
+            raise ConfigError("particle: map_sigma and level_sigma must be >= 0")
+        if not 0.0 < self.ambiguity_mass <= 1.0:
+            raise ConfigError(f"particle 'ambiguity_mass': expected 0 < x <= 1, got {self.ambiguity_mass!r}")
         if self.measurement == "fix" and self.fix_matcher is None:
             from .likelihood import LikelihoodMatcher
 
@@ -133,54 +252,129 @@ class ParticleFilter:
 
     # ------------------------------------------------------------------ recursion
     def initiate(self, prior: NavEstimate, rng: np.random.Generator) -> ParticleState:
-        """Particles about the prior position (disc of ``init_radius_m`` or the prior covariance)."""
+        """A cloud about the prior position (the prior covariance, or a disc of ``init_radius_m``), with its
+        moments without readings (``prior_mean``, ``prior_cov``) for the increment."""
         nav = prior.nav
         frame = LocalFrame(float(nav.lat), float(nav.lon), 0.0)
         m = self.n_particles
+        P = np.asarray(prior.P, float)
+        ps, vs = prior.layout["pos"], prior.layout["vel"]
+        ip = [ps.start, ps.start + 1]
+        iv = [vs.start, vs.start + 1]
+        k2 = self.prior_inflation**2
+        c_pp = 0.5 * (P[np.ix_(ip, ip)] + P[np.ix_(ip, ip)].T) * k2
+        c_vv = 0.5 * (P[np.ix_(iv, iv)] + P[np.ix_(iv, iv)].T)
+        c_pv = P[np.ix_(ip, iv)] * k2
+        vv_now = c_vv.copy()
+        c_vv = c_vv * k2
+        v0 = np.asarray(nav.v_n, float)[:2]
         if self.init == "disc":
             r = self.init_radius_m * np.sqrt(rng.uniform(size=m))
             a = rng.uniform(0.0, 2 * np.pi, size=m)
             pos = np.column_stack([r * np.cos(a), r * np.sin(a)])
+            c_pp, c_pv = np.eye(2) * self.init_radius_m**2 / 4.0, np.zeros((2, 2))
         else:
-            pos = rng.multivariate_normal(np.zeros(2), np.asarray(prior.cov_ne, float), size=m)
-        v0 = np.asarray(nav.v_n, float)[:2]
-        vel = np.tile(v0, (m, 1))
+            pos = None
+        want_dv = self.dynamics == "ins" and self.ins_velocity
+        if self.dynamics == "ins":
+            cov4 = np.zeros((4, 4))
+            cov4[:2, :2] = c_pp
+            if want_dv:
+                cov4[:2, 2:], cov4[2:, :2], cov4[2:, 2:] = c_pv, c_pv.T, c_vv
+            if pos is None:
+                x = rng.multivariate_normal(np.zeros(4), cov4, size=m, method="eigh")
+                x = _moment_match(x, np.zeros(4), cov4 + np.eye(4) * 1e-12) if m > 8 else x
+                pos, dv = x[:, :2], x[:, 2:]
+            else:
+                dv = rng.multivariate_normal(np.zeros(2), c_vv, size=m, method="eigh") if want_dv else np.zeros((m, 2))
+            if not want_dv:
+                dv = np.zeros((m, 2))
+            prior_mean, prior_cov = np.zeros(4), cov4
+            vel = np.tile(v0, (m, 1))
+        else:
+            cov6 = np.zeros((6, 6))  # [pN, vN, aN, pE, vE, aE]
+            cov6[np.ix_([0, 3], [0, 3])] = c_pp
+            if pos is None:
+                pos = rng.multivariate_normal(np.zeros(2), c_pp, size=m, method="eigh")
+                pos = _moment_match(pos, np.zeros(2), c_pp + np.eye(2) * 1e-12) if m > 4 else pos
+            vel = np.tile(v0, (m, 1))
+            dv = np.zeros((m, 2))
+            prior_mean = np.array([0.0, v0[0], 0.0, 0.0, v0[1], 0.0])
+            prior_cov = cov6
         acc = np.zeros((m, 2))
         logw = np.full(m, -np.log(m))
-        return ParticleState(float(nav.t), frame, float(nav.h), pos, vel, acc, logw, np.zeros(2), float(m), rng)
+        st = ParticleState(float(nav.t), frame, float(nav.h), pos, vel, acc, logw, np.zeros(2), float(m), rng)
+        st.dv = dv
+        st.prior_mean, st.prior_cov = prior_mean, prior_cov
+        st.p_vv = vv_now
+        return st
 
     def predict(self, state: ParticleState, prior: NavEstimate) -> ParticleState:
-        """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones."""
+        """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones.
+        After an increment was issued (:meth:`to_fix`), draw a new cloud from ``prior`` instead."""
+        if state.issued and self.fix_output == "increment":
+            return self.initiate(prior, state.rng)
         rng = state.rng
         nav = prior.nav
         dt = float(nav.t) - state.t
         pos, vel, acc = state.pos.copy(), state.vel.copy(), state.acc.copy()
+        dv = state.dv if state.dv is not None else np.zeros_like(pos)
         ins_n, ins_e = state.frame.to_ne(nav.lat, nav.lon)
         ins_ne = np.array([float(ins_n), float(ins_e)])
         m = len(pos)
+        iv = [prior.layout["vel"].start, prior.layout["vel"].start + 1]
+        p_vv_now = np.asarray(prior.P, float)[np.ix_(iv, iv)]
+        mean0 = None if state.prior_mean is None else state.prior_mean.copy()
+        cov0 = None if state.prior_cov is None else state.prior_cov.copy()
         if dt > 0:
             if self.dynamics == "gauss_markov":
                 nsub = max(1, int(np.ceil(dt / (0.25 * self.tau_s))))
                 h = dt / nsub
                 phi = np.exp(-h / self.tau_s)
                 sd = self.accel_sigma * np.sqrt(1.0 - phi**2)
+                f3, q3 = _gm_transition(h, self.tau_s, self.accel_sigma)
+                f6 = np.kron(np.eye(2), f3)
+                q6 = np.kron(np.eye(2), q3)
                 for _ in range(nsub):
                     a_new = phi * acc + sd * rng.standard_normal((m, 2))
                     pos += vel * h + (2.0 * acc + a_new) * h * h / 6.0
                     vel += 0.5 * (acc + a_new) * h
                     acc = a_new
+                    if mean0 is not None and cov0 is not None:
+                        mean0 = f6 @ mean0
+                        cov0 = f6 @ cov0 @ f6.T + q6
             else:
                 v_now = np.asarray(nav.v_n, float)[:2]
                 step = 0.5 * (state.vel.mean(axis=0) + v_now) * dt  # trapezoid of the INS velocity
-                pos += step + self.ins_sigma * np.sqrt(dt) * rng.standard_normal((m, 2))
+                q_v = np.zeros((2, 2))
+                if self.ins_velocity and state.p_vv is not None:  # the fuser's velocity covariance growth
+                    q_v = _psd_part(p_vv_now - state.p_vv) * self.prior_inflation**2
+                dv_new = dv + rng.multivariate_normal(np.zeros(2), q_v, size=m, method="eigh") if q_v.any() else dv
+                pos += step + 0.5 * (dv + dv_new) * dt + self.ins_sigma * np.sqrt(dt) * rng.standard_normal((m, 2))
+                dv = dv_new
                 vel[:] = v_now
+                if mean0 is not None and cov0 is not None:
+                    f4 = np.eye(4)
+                    f4[0, 2] = f4[1, 3] = dt
+                    mean0 = f4 @ mean0
+                    mean0[:2] += step
+                    cov0 = f4 @ cov0 @ f4.T
+                    g = np.vstack([0.5 * dt * np.eye(2), np.eye(2)])  # dv increment: half into the position
+                    cov0 = cov0 + g @ q_v @ g.T
+                    cov0[0, 0] += self.ins_sigma**2 * dt
+                    cov0[1, 1] += self.ins_sigma**2 * dt
         logw = state.logw.copy()
         if self.road is not None:
             lat, lon = state.frame.to_latlon(pos[:, 0], pos[:, 1])
             _, dist, _ = self.road.nearest(lat, lon)
             logw += -0.5 * (np.asarray(dist, float) / self.road_sigma_m) ** 2
             logw = _normalise(logw)
-        st = replace(state, t=float(nav.t), h=float(nav.h), pos=pos, vel=vel, acc=acc, logw=logw, ins_ne=ins_ne)
+        st = replace(
+            state, t=float(nav.t), h=float(nav.h), pos=pos, vel=vel, acc=acc, logw=logw, ins_ne=ins_ne,
+            prior_mean=mean0, prior_cov=cov0, issued=False, dv=dv, p_vv=p_vv_now,
+        )  # fmt: skip
+        st.extra = dict(state.extra)
+        st.extra["moved_m"] = st.extra.get("moved_m", 0.0) + float(np.hypot(*np.mean(pos - state.pos, axis=0)))
         return self._maybe_resample(st, rng)
 
     def update(self, state: ParticleState, readings: FieldReadings, fmap: FieldMap) -> ParticleState:
@@ -190,42 +384,116 @@ class ParticleFilter:
             return replace(state, reason="no reading")
         try:
             if self.measurement == "field":
-                loglik, reason = self._field_loglik(state, readings, fmap)
+                out = self._field_update(state, readings, fmap)
+                if isinstance(out[0], str):
+                    return replace(state, reason=out[0])
+                loglik, st = out  # type: ignore[misc]
             else:
                 loglik, reason = self._fix_loglik(state, readings, fmap)
+                if loglik is None:
+                    return replace(state, reason=reason)
+                st = state
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-            loglik, reason = None, f"map lookup failed: {exc}"
-        if loglik is None:
-            return replace(state, reason=reason)
-        logw = _normalise(state.logw + loglik)
-        return self._maybe_resample(replace(state, logw=logw, reason=""), rng, force_check=True)
+            return replace(state, reason=f"map lookup failed: {exc}")
+        logw = _normalise(st.logw + loglik)
+        st = replace(st, logw=logw, reason="", readings=st.readings + 1)
+        return self._maybe_resample(st, rng, force_check=True)
 
     def to_fix(self, state: ParticleState) -> Fix:
-        """Weighted mean and covariance of the particles, or "no fix" with the reason of the last update."""
+        """The increment since the cloud was drawn, or the cloud's weighted mean and covariance
+        (``fix_output``); "no fix" with the reason otherwise (module docstring)."""
         if state.reason:
             return Fix.no_fix(state.t, state.reason, self.name)
         w = np.exp(state.logw)
         mean = w @ state.pos
         d = state.pos - mean
         cov = (d * w[:, None]).T @ d
-        lat, lon = state.frame.to_latlon(mean[0], mean[1])
-        return Fix(state.t, float(lat), float(lon), cov, True, "", state.neff, self.name)
+        cov = 0.5 * (cov + cov.T)
+        try:
+            ci = np.linalg.inv(cov)
+        except np.linalg.LinAlgError:
+            return Fix.no_fix(state.t, "particle cloud collapsed (singular covariance)", self.name)
+        m2 = np.einsum("ij,jk,ik->i", d, ci, d)
+        tail = float(w[m2 > _CLOUD_TAIL_CHI2].sum())
+        if tail > self.ambiguity_mass:
+            return Fix.no_fix(
+                state.t,
+                f"ambiguous: particle cloud not unimodal ({100 * tail:.0f} % of the weight beyond 3 sigma)",
+                self.name,
+                state.neff,
+            )
+        if self.fix_output == "posterior" or state.prior_cov is None:
+            lat, lon = state.frame.to_latlon(mean[0], mean[1])
+            return Fix(state.t, float(lat), float(lon), cov, True, "", state.neff, self.name)
+        ip = [0, 1] if self.dynamics == "ins" else [0, 3]
+        mu0 = state.prior_mean[ip]  # type: ignore[index]
+        p0 = state.prior_cov[np.ix_(ip, ip)]
+        p0 = 0.5 * (p0 + p0.T)
+        try:
+            y = ci - np.linalg.inv(p0)
+        except np.linalg.LinAlgError:
+            return Fix.no_fix(state.t, "prior covariance singular", self.name)
+        lam = np.linalg.eigvalsh(y)
+        if lam[0] <= 0:
+            return Fix.no_fix(
+                state.t,
+                "too little new information: the readings since the last fix did not narrow the cloud in every "
+                f"direction ({state.readings} readings)",
+                self.name,
+                state.neff,
+            )
+        r = np.linalg.inv(y)
+        r = 0.5 * (r + r.T)
+        z = r @ (ci @ mean - np.linalg.solve(p0, mu0))
+        sig = float(np.sqrt(np.linalg.eigvalsh(r)[-1]))
+        max_sig = (
+            self.max_fix_sigma_m
+            if self.max_fix_sigma_m is not None
+            else 2.0 * float(np.sqrt(np.linalg.eigvalsh(p0)[-1]))
+        )
+        if sig > max_sig:
+            return Fix.no_fix(
+                state.t,
+                f"too little new information: fix sigma {sig:.3g} m above {max_sig:.3g} m ({state.readings} readings)",
+                self.name,
+                state.neff,
+            )
+        d_mu = mean - mu0
+        d_z = z - mu0
+        m_mu = float(d_mu @ np.linalg.solve(p0, d_mu))
+        m_z = float(d_z @ np.linalg.solve(p0 + r, d_z))
+        if max(m_mu, m_z) > _PRIOR_CONSISTENCY_CHI2:
+            return Fix.no_fix(
+                state.t,
+                "inconsistent with the prior: the readings pull the cloud "
+                f"{np.sqrt(m_mu):.1f} prior sigmas away (increment {np.sqrt(m_z):.1f} sigmas): the likelihood peaks "
+                "beyond the particles, or the prior is too confident",
+                self.name,
+                state.neff,
+            )
+        lat, lon = state.frame.to_latlon(z[0], z[1])
+        state.issued = True  # the next prediction draws a new cloud from the fuser's estimate
+        return Fix(state.t, float(lat), float(lon), r, True, "", state.neff, self.name)
 
     # ------------------------------------------------------------------ internals
-    def _field_loglik(
+    def _error_model(self, fmap: FieldMap) -> MapErrorModel:
+        return resolve_map_error(fmap, self.map_sigma, self.map_correlation_m)
+
+    def _field_update(
         self, state: ParticleState, readings: FieldReadings, fmap: FieldMap
-    ) -> tuple[FloatArray | None, str]:
+    ) -> tuple[FloatArray, ParticleState] | tuple[str, None]:
         z = np.asarray(readings.value, float).reshape(len(readings), -1)[-1]
         ncomp = map_components(fmap)
         if z.size != ncomp:
-            return None, f"reading has {z.size} components, map has {ncomp}"
+            return f"reading has {z.size} components, map has {ncomp}", None
         if not np.all(np.isfinite(z)):
-            return None, "reading is NaN"
-        m = sample_map(fmap, state.frame, state.pos[:, 0], state.pos[:, 1], None).reshape(len(state.pos), ncomp)
+            return "reading is NaN", None
+        mp = len(state.pos)
+        m = sample_map(fmap, state.frame, state.pos[:, 0], state.pos[:, 1], None).reshape(mp, ncomp)
         ok = np.all(np.isfinite(m), axis=1)
         if not np.any(ok):
-            return None, "off the map: no particle on the map"
-        s2 = float(readings.sigma) ** 2 + self.map_sigma**2
+            return "off the map: no particle on the map", None
+        s2v = float(readings.sigma) ** 2
         w = np.exp(state.logw)
         mean = w @ state.pos
         sd = float(np.sqrt(np.sum(w @ (state.pos - mean) ** 2)))
@@ -235,14 +503,69 @@ class ParticleFilter:
         stencil = sample_map(fmap, state.frame, gn.ravel(), ge.ravel(), None).reshape(gn.size, ncomp)
         centre = stencil[gn.size // 2]
         spread = feature_variability(stencil, centre) if np.all(np.isfinite(centre)) else np.inf
-        if spread < self.min_variability**2 * s2:  # Wang eq. 14 about the cloud mean
-            return None, (
+        if spread < self.min_variability**2 * s2v:  # Wang eq. 14 about the cloud mean
+            return (
                 f"flat map: feature variability {np.sqrt(spread):.3g} about the particle mean below "
-                f"{self.min_variability:g} x reading sigma {np.sqrt(s2):.3g}"
-            )
-        loglik = np.full(len(m), -np.inf)
-        loglik[ok] = -0.5 * np.sum((m[ok] - z) ** 2, axis=1) / s2
-        return loglik, ""
+                f"{self.min_variability:g} x reading sigma {np.sqrt(s2v):.3g}"
+            ), None
+        err = self._error_model(fmap)
+        lat, lon = state.frame.to_latlon(state.pos[:, 0], state.pos[:, 1])
+        sm2 = err.sigma_at(lat, lon) ** 2  # (M,)
+        sm2 = np.where(np.isfinite(sm2), sm2, 0.0)[:, None] * np.ones((1, ncomp))
+        st = self._level_error_predict(state, sm2, err.correlation_m, ncomp)
+        resid = np.where(ok[:, None], z[None, :] - m, 0.0)  # (M, c)
+        loglik, st = self._level_error_update(st, resid, s2v)
+        loglik = np.where(ok, loglik, -np.inf)
+        return loglik, st
+
+    def _level_error_predict(self, state: ParticleState, sm2: FloatArray, ell: float, ncomp: int) -> ParticleState:
+        """Carry the per-particle level / map-error filter to the particles' new positions (module docstring)."""
+        mp = len(state.pos)
+        if state.err is None or state.err.shape != (mp, ncomp):
+            p_ll = np.full((mp, ncomp), 0.0 if self.level_sigma is None else float(self.level_sigma) ** 2)
+            return replace(
+                state, lev=np.zeros((mp, ncomp)), err=np.zeros((mp, ncomp)), p_ll=p_ll,
+                p_le=np.zeros((mp, ncomp)), p_ee=sm2.copy(), lev_set=self.level_sigma is not None,
+                extra={**state.extra, "moved_m": 0.0},
+            )  # fmt: skip
+        moved = float(state.extra.get("moved_m", 0.0))
+        rho = float(markov_coefficient(moved, ell))
+        st = replace(
+            state, err=rho * state.err, p_le=rho * state.p_le, p_ee=rho**2 * state.p_ee + (1.0 - rho**2) * sm2,
+            extra={**state.extra, "moved_m": 0.0},
+        )  # fmt: skip
+        return st
+
+    def _level_error_update(
+        self, state: ParticleState, resid: FloatArray, s2v: float
+    ) -> tuple[FloatArray, ParticleState]:
+        """Kalman update of ``(c, b)`` per particle and component with ``resid = z - m(x)``; returns the marginal
+        log-likelihood per particle (summed over components) and the updated state."""
+        lev, err = state.lev, state.err
+        p_ll, p_le, p_ee = state.p_ll, state.p_le, state.p_ee
+        assert lev is not None and err is not None and p_ll is not None and p_le is not None and p_ee is not None
+        if not state.lev_set:  # diffuse level: the first reading sets it and says nothing about position
+            lev = resid - err
+            p_ll = p_ee + s2v
+            p_le = -p_ee.copy()
+            return np.zeros(len(resid)), replace(state, lev=lev, p_ll=p_ll, p_le=p_le, lev_set=True)
+        nu = resid - lev - err
+        s = p_ll + 2.0 * p_le + p_ee + s2v
+        k_l = (p_ll + p_le) / s
+        k_e = (p_le + p_ee) / s
+        loglik = -0.5 * np.sum(nu**2 / s + np.log(s), axis=1)
+        w = np.exp(state.logw)  # the predictive check: the cloud's mixture forecast of the reading
+        nu_bar = w @ nu
+        var = w @ (s + (nu - nu_bar) ** 2)
+        nis = float(np.sum(nu_bar**2 / var))
+        extra = {**state.extra, "nis_sum": state.extra.get("nis_sum", 0.0) + nis}
+        extra["nis_n"] = state.extra.get("nis_n", 0.0) + nu.shape[1]
+        lev = lev + k_l * nu
+        err = err + k_e * nu
+        p_ll_n = p_ll - k_l * k_l * s
+        p_le_n = p_le - k_l * k_e * s
+        p_ee_n = p_ee - k_e * k_e * s
+        return loglik, replace(state, lev=lev, err=err, p_ll=p_ll_n, p_le=p_le_n, p_ee=p_ee_n, extra=extra)
 
     def _fix_loglik(
         self, state: ParticleState, readings: FieldReadings, fmap: FieldMap
@@ -271,6 +594,7 @@ class ParticleFilter:
         if force_check and neff < self.resample_threshold * m + 1e-9:
             idx = _systematic_resample(w, float(rng.uniform()))
             pos = state.pos[idx]
+            dv = None if state.dv is None else state.dv[idx]
             if self.roughening:  # regularised resampling with Liu-West shrinkage: keeps the mean and covariance
                 mean = w @ state.pos
                 d = state.pos - mean
@@ -279,13 +603,20 @@ class ParticleFilter:
                 a = np.sqrt(1.0 - h2)
                 jitter = rng.multivariate_normal(np.zeros(2), h2 * cov, size=m)
                 pos = mean + a * (pos - mean) + jitter
+            sel = {k: (None if getattr(state, k) is None else getattr(state, k)[idx]) for k in _PER_PARTICLE}
             return replace(
                 state,
                 pos=pos,
                 vel=state.vel[idx],
                 acc=state.acc[idx],
+                dv=dv,
                 logw=np.full(m, -np.log(m)),
                 neff=neff,
                 resampled=state.resampled + 1,
+                **sel,
             )
         return replace(state, neff=neff)
+
+
+#: per-particle arrays of the level / map-error filter, resampled with the particles
+_PER_PARTICLE = ("lev", "err", "p_ll", "p_le", "p_ee")

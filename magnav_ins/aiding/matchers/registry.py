@@ -64,7 +64,9 @@ _OBJECT_KEYS = {"road"}
 def matcher_keys(kind: str) -> list[str]:
     """The configuration keys a kind accepts (besides ``kind``)."""
     cls, fixed = _lookup(kind)
-    return sorted(f.name for f in dataclasses.fields(cls) if f.name not in fixed and f.name not in _OBJECT_KEYS)
+    return sorted(
+        f.name for f in dataclasses.fields(cls) if f.init and f.name not in fixed and f.name not in _OBJECT_KEYS
+    )
 
 
 def _lookup(kind: object) -> tuple[type, dict[str, Any]]:
@@ -116,7 +118,7 @@ def build_matcher(config: Mapping[str, Any], *, road: Any = None) -> Any:
     kind = config["kind"]
     cls, fixed = _lookup(kind)
     config = _with_preset(kind, cls, config)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}  # not the matcher's run-time state
     kwargs: dict[str, Any] = dict(fixed)
     for key, value in config.items():
         if key == "kind":
