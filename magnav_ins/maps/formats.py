@@ -151,7 +151,7 @@ def open_foreign(path: str | Path, variable: str | None = None) -> ForeignGrid:
     if p.stat().st_size == 0:
         raise MapError(f"{p}: the file is empty; expected a map (NetCDF, GeoTIFF, ER Mapper, GXF, Geosoft GRD)")
     raise MapError(
-        f"{p}: not a NetCDF file (no NetCDF or HDF5 signature) nor a grid format by its suffix (GeoTIFF .tif, "
+        f"{p}: unknown grid format: not a NetCDF file (no NetCDF or HDF5 signature) nor a grid by its suffix (GeoTIFF .tif, "
         "ER Mapper .ers, Geosoft .gxf / .grd)"
     )
 
