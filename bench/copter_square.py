@@ -5,7 +5,9 @@ with a simulated flight: a square of ``side_m`` at ``speed_mps`` and ``altitude_
 (``waypoints``), IMU errors of ``grade`` (seeded), a magnetometer = IGRF main field + the anomaly of the SITL world
 (the survey gridded at 50 m from every line, tie lines included: ``sitl.osborne_world``, as the SITL sees it) + 1 nT
 noise + a constant offset; GNSS fixes (0.5 m) every second for ``gnss_s``; the readings' offset is calibrated against
-the map (``builtin:osborne-magnetic``) while GNSS-aided, as the bridge does. For tuning the matcher before a SITL
+the map (``builtin:osborne-magnetic``) while GNSS-aided, as the bridge does; the autopilot's attitude (truth with a
+constant error of ``attitude_source_error`` rad 1-sigma and 0.002 rad noise) aids the INS every
+``attitude_interval`` s when ``attitude_aid``. For tuning the matcher before a SITL
 flight (minutes instead of a quarter of an hour) and for spreads over seeds, which one SITL flight cannot give.
 
 Usage: ``python bench/copter_square.py '{"seeds": [1, 2, 3], "reading_interval": 0.5, "window": 40}' [--json]``
@@ -51,6 +53,11 @@ DEFAULTS = {
     "offset_nt": 30.0,
     "attitude_sigma": [0.01, 0.01, 0.05],
     "date": "2026-03-20",
+    "fusion_options": {},
+    "attitude_aid": True,
+    "attitude_interval": 1.0,
+    "attitude_aid_sigma": [0.01, 0.01, 0.035],
+    "attitude_source_error": [0.003, 0.003, 0.02],
 }
 
 
@@ -73,9 +80,14 @@ def run_one(cfg: dict, seed: int, fmap, world) -> dict:  # noqa: ANN001
     pipe = make_online_pipeline(
         nav0, 1.0, fmap, grade=cfg["filter_grade"] or cfg["grade"], matcher=cfg["matcher"],
         reading_sigma=cfg["reading_sigma"], window=cfg["window"], match_every=cfg["match_every"],
-        attitude_sigma_rad=tuple(cfg["attitude_sigma"]),
+        attitude_sigma_rad=tuple(cfg["attitude_sigma"]), fusion_options=cfg["fusion_options"],
     )  # fmt: skip
     model = ScalarAnomalyModel(cfg["date"])
+    # the autopilot's AHRS: truth with a constant error (tilt, heading; drawn once) and 0.002 rad white noise
+    from scipy.spatial.transform import Rotation
+
+    src_err = Rotation.from_rotvec(rng.normal(0.0, 1.0, 3) * np.asarray(cfg["attitude_source_error"]))
+    next_att = 0.0
     t_gnss = cfg["gnss_s"]
     next_gnss = next_read = 0.0
     errs, sig, times = [], [], []
@@ -85,6 +97,11 @@ def run_one(cfg: dict, seed: int, fmap, world) -> dict:  # noqa: ANN001
         if t < t_gnss and t >= next_gnss:
             pipe.push_fix(Fix(t, truth.lat[k], truth.lon[k], np.eye(2) * 0.25, True, "", math.nan, "gnss"))
             next_gnss = t + 1.0
+        if cfg["attitude_aid"] and t >= next_att:
+            noise = Rotation.from_rotvec(rng.normal(0.0, 0.002, 3))
+            q_src = (noise * src_err * Rotation.from_quat(truth.q_nb[k])).as_quat()
+            pipe.push_attitude(t, q_src, tuple(cfg["attitude_aid_sigma"]))
+            next_att = t + cfg["attitude_interval"]
         if t >= next_read:
             nav = pipe.estimate().nav
             v = model(mag[k], nav)

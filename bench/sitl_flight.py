@@ -56,6 +56,10 @@ def _sitl_params(output: str, speed_mps: float, sim_drift: bool) -> dict[str, fl
         "SR1_EXTRA1": 0,  # the bridge asks for what it needs (SET_MESSAGE_INTERVAL)
         "WPNAV_SPEED": speed_mps * 100.0,
         "WPNAV_ACCEL": 250.0,
+        # SITL's gyros leave out the Earth's rotation (a flat, non-rotating world): with a fixed heading the missing
+        # 7e-5 rad/s is a constant body-frame bias that the bridge's ground alignment measures; turning the vehicle
+        # at every corner would make it a bias that rotates with the heading
+        "WP_YAW_BEHAVIOR": 0,
         "RTL_ALT": 0.0,  # return at the current height
         "FENCE_ENABLE": 0,
     }
@@ -74,8 +78,10 @@ def _bridge_cmd(args, port: int, summary: Path, track: Path) -> list[str]:  # no
     head = [str(exe)] if exe.is_file() else [sys.executable, "-m", "magnav_ins.cli"]
     cmd = [*head, "bridge", "--connect", f"udpin:127.0.0.1:{port}", "--map", "builtin:osborne-magnetic",
            "--output", args.output, "--rate", "10", "--summary-json", str(summary), "--track-csv", str(track),
-           "--reading-interval", str(args.reading_interval), "--window", str(args.window),
-           "--match-every", str(args.match_every), "--reading-sigma", str(args.reading_sigma)]  # fmt: skip
+           "--date", "2026-03-20"]  # fmt: skip
+    for opt in ("reading_interval", "window", "match_every", "reading_sigma", "matcher"):
+        if getattr(args, opt) is not None:
+            cmd += ["--" + opt.replace("_", "-"), str(getattr(args, opt))]
     if args.output == "gps_input":
         cmd += ["--gps-id", "1"]
     else:
@@ -149,7 +155,10 @@ def fly(args: argparse.Namespace) -> dict:  # noqa: C901 - one flight, step by s
                 denied["done"] = True
                 logging.info("GNSS denied (SIM_GPS1_ENABLE=0) %.0f s after take-off", t_deny - t_takeoff)
 
+        aborted = ""
         for dn, de in corners_ne:
+            if aborted:
+                break
             dlat, dlon = meters_to_latlon(dn, de, home_lat, 0.0)
             lat, lon = home_lat + float(dlat), home_lon + float(dlon)
             leg_timeout = 1.8 * args.side_m / args.speed_mps + 60
@@ -161,15 +170,21 @@ def fly(args: argparse.Namespace) -> dict:  # noqa: C901 - one flight, step by s
 
             t_leg = time.monotonic()
             while time.monotonic() - t_leg < leg_timeout and not arrived():
+                if gcs.mode not in ("GUIDED", ""):  # a failsafe took over: let it land, record it
+                    aborted = f"mode {gcs.mode} at {time.monotonic() - t_takeoff:.0f} s after take-off"
+                    break
                 link.goto(lat, lon, args.altitude_m)
                 gcs.wait(arrived, 2.0, every=deny_when_due)
                 if not gcs.armed:
-                    raise RuntimeError("disarmed in flight: " + "; ".join(t for _, _, t in gcs.texts[-8:]))
+                    aborted = "disarmed in flight"
+                    break
         if t_deny is None:
             deny_when_due()
             t_deny = t_deny or time.monotonic()
-        link.set_mode("LAND")
-        gcs.wait(lambda: not gcs.armed, 240, "landing and disarm")
+        out["aborted"] = aborted
+        if gcs.armed and not aborted:
+            link.set_mode("LAND")
+        gcs.wait(lambda: not gcs.armed, 300, "landing and disarm")
         t_land = time.monotonic()
         out["landed"] = not gcs.armed
         out["gnss_denied_s"] = round(t_land - t_deny, 1)
@@ -212,6 +227,9 @@ def fly(args: argparse.Namespace) -> dict:  # noqa: C901 - one flight, step by s
         out["bridge_statustexts"] = s["statustexts_sent"]
         out["field_offset_nt"] = None if not math.isfinite(s["field_offset_nt"]) else round(s["field_offset_nt"], 1)
         out["bridge_history"] = s["history"][-12:]
+        out["no_fix_reasons"] = s.get("no_fix_reasons", {})
+        out["rejected_reasons"] = s.get("rejected_reasons", {})
+        out["attitude_updates"] = s.get("attitude_accepted", 0)
     if track_path.is_file() and "_truth" in out:
         import pandas as pd
 
@@ -251,10 +269,11 @@ def main() -> None:
     ap.add_argument("--denied-s", type=float, default=None, help="(informative) the square is sized by --side-m")
     ap.add_argument("--speedup", type=float, default=1.0)
     ap.add_argument("--sim-drift", action="store_true", help="keep the SITL's simulated gyro drift")
-    ap.add_argument("--reading-interval", type=float, default=0.2)
-    ap.add_argument("--window", type=int, default=40)
-    ap.add_argument("--match-every", type=int, default=10)
-    ap.add_argument("--reading-sigma", type=float, default=5.0)
+    ap.add_argument("--reading-interval", type=float, default=None, help="bridge option (default: the bridge's)")
+    ap.add_argument("--window", type=int, default=None, help="bridge option")
+    ap.add_argument("--match-every", type=int, default=None, help="bridge option")
+    ap.add_argument("--reading-sigma", type=float, default=None, help="bridge option")
+    ap.add_argument("--matcher", default=None, help="bridge option (a kind or a JSON table)")
     ap.add_argument("--bridge-arg", action="append", help="extra argument for magnav-ins bridge (repeatable)")
     ap.add_argument("--keep", action="store_true", help="keep the work directory (logs, track)")
     ap.add_argument("-v", "--verbose", action="store_true")

@@ -279,9 +279,8 @@ CASES = [
     ),  # fmt: skip
     # ---- map info / grid / sample / variability
     Case("map-info-missing", ("map", "info", "nope.nc"), ("nope.nc", "no such map file")),
-    Case("map-info-junk", ("map", "info", "junk.bin"), ("junk.bin", "unknown grid format")),
+    Case("map-info-junk", ("map", "info", "junk.bin"), ("junk.bin", "not a NetCDF file")),
     Case("map-info-empty", ("map", "info", "empty"), ("empty", "is empty")),
-    Case("map-info-utm", ("map", "info", "utm.nc"), ("utm.nc", "projected coordinates", "reproject")),
     Case("map-grid-junk", ("map", "grid", "junk.bin", "--spacing", "100", "--out", "g.nc"), ("junk.bin",), ("g.nc",)),
     Case("map-grid-empty", ("map", "grid", "empty", "--spacing", "100", "--out", "g.nc"), ("empty",), ("g.nc",)),
     Case(
@@ -317,7 +316,7 @@ CASES = [
     Case(
         "map-variability-junk",
         ("map", "variability", "junk.bin", "--window", "1000", "--out", "v.nc"),
-        ("junk.bin", "unknown grid format"),
+        ("junk.bin", "not a NetCDF file"),
         ("v.nc", "v.png"),
     ),  # fmt: skip
     Case(
@@ -423,3 +422,12 @@ def test_antimeridian_wrapped_grid_is_read(work, capsys):
     row = int(np.flatnonzero(lat == -15.0)[0])
     want = [v[row, int(np.flatnonzero(lon == x)[0])] for x in (179.5, -180.0, -175.0)]
     np.testing.assert_allclose(got, want, rtol=1e-9)
+
+
+def test_utm_grid_is_used_in_its_own_crs(tmp_path):
+    """A grid in UTM metres with a CRS opens as a projected map (issue 14: used in its own CRS), not refused."""
+    from magnav_ins.maps.io import read_map
+
+    _utm_grid(tmp_path / "utm.nc")
+    m = read_map(tmp_path / "utm.nc")
+    assert m.frame == "projected" and "UTM zone 54S" in m.projection.name

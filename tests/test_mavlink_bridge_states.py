@@ -56,7 +56,9 @@ def _gnss(t: float, fix: int = 3, lat: float = LAT, lon: float = LON, speed: flo
     return GnssMessage(t, 0, fix, lat, lon, 400.0, 400.0, 0.8, 1.5, 0.7, 12 if fix >= 3 else 0, speed, 0.0, 1, 1)
 
 
-def _at_rest(t: float, gyro_bias=np.zeros(3), accel_bias=np.zeros(3)) -> ImuMessage:  # noqa: ANN001
+def _at_rest(t: float, gyro_bias=None, accel_bias=None) -> ImuMessage:  # noqa: ANN001
+    gyro_bias = np.zeros(3) if gyro_bias is None else gyro_bias
+    accel_bias = np.zeros(3) if accel_bias is None else accel_bias
     g = gravity_n(LAT, 400.0)
     accel = np.array([0.0, 0.0, -g[2]]) + accel_bias
     gyro = np.array([WGS84_OMEGA_E * math.cos(LAT), 0.0, -WGS84_OMEGA_E * math.sin(LAT)]) + gyro_bias

@@ -46,14 +46,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         choices=["auto", "mean", "instantaneous", "increment"],
         help="what a HIGHRES_IMU sample is (default auto: instantaneous from ArduPilot, interval mean from PX4)",
     )
-    p.add_argument("--matcher", default="mlr", help="matcher kind (default mlr)")
+    p.add_argument(
+        "--matcher",
+        default=None,
+        help=f"matcher: a kind (ml, mlr, ...) or a JSON table of its options (default: {DEFAULT_MATCHER_TEXT})",
+    )
     p.add_argument("--fusion", default="ukf", choices=["ukf", "graph", "free_inertial"])
     p.add_argument("--calibration", help="magnetometer calibration JSON from 'magnav-ins calibrate'")
     p.add_argument("--date", default=None, help="date for IGRF, YYYY-MM-DD (default today)")
-    p.add_argument("--reading-interval", type=float, default=0.1, help="seconds between magnetometer readings used")
+    p.add_argument("--reading-interval", type=float, default=0.5, help="seconds between magnetometer readings (0.5)")
     p.add_argument("--reading-sigma", type=float, default=5.0, help="1-sigma of a reading in the map's unit (5 nT)")
-    p.add_argument("--window", type=int, default=30, help="readings per matcher window (default 30)")
-    p.add_argument("--match-every", type=int, default=10, help="readings between match attempts (default 10)")
+    p.add_argument("--window", type=int, default=40, help="readings per matcher window (default 40)")
+    p.add_argument("--match-every", type=int, default=20, help="readings between match attempts (default 20)")
     p.add_argument(
         "--max-sigma",
         type=float,
@@ -65,7 +69,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=None,
         help="do not send positions whose protection level exceeds this, m (fusers with integrity; default "
-        "3.7 x --max-sigma)",
+        "5 x --max-sigma)",
     )
     p.add_argument("--gps-id", type=int, default=0, help="GPS_INPUT instance: 0 = GPS1 (default), 1 = GPS2")
     p.add_argument(
@@ -89,6 +93,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="when the GNSS is lost, switch ArduPilot's EKF to this source set (MAV_CMD_SET_EKF_SOURCE_SET; 1 back)",
     )
     p.add_argument("--no-align", action="store_true", help="no ground alignment: integrate from the first sample")
+    p.add_argument(
+        "--no-attitude-aid",
+        action="store_true",
+        help="do not use the autopilot's attitude (ATTITUDE: its accelerometers and compass) to aid the INS",
+    )
     p.add_argument("--signing-key", help="MAVLink 2 signing key file (32 bytes, 64 hex characters or a passphrase)")
     p.add_argument("--sysid", type=int, default=1, help="our system id (default 1, the vehicle's)")
     p.add_argument("--autopilot-sysid", type=int, default=1)
@@ -105,6 +114,39 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="write every output (wall time, lat, lon, height, sigma, trusted, sent, state, aiding) as CSV",
     )
     p.set_defaults(handler=run)
+
+
+#: the bridge's matcher: maximum likelihood on demeaned sections (a constant offset between the readings and the map
+#: does not move the fix), the map's error (10 nT) in the likelihood and a 20 m floor on the fix sigma (the map
+#: gridded at 100 m, the INS track shape over a section), fixes wider than 150 m not issued. Chosen on the offline
+#: copter square (bench/copter_square.py), not on the SITL flight it is then measured on.
+DEFAULT_MATCHER = {
+    "kind": "ml",
+    "demean": True,
+    "map_sigma": 10.0,
+    "min_fix_sigma_m": 20.0,
+    "max_fix_sigma_m": 150.0,
+    "min_variability": 0.3,
+}
+DEFAULT_MATCHER_TEXT = ", ".join(f"{k}={v}" for k, v in DEFAULT_MATCHER.items())
+
+
+def parse_matcher(text: str | None):  # noqa: ANN201
+    """``--matcher``: None -> :data:`DEFAULT_MATCHER`; a kind name; or a JSON table (``{"kind": "ml", ...}``)."""
+    from ..core.errors import ConfigError
+
+    if text is None:
+        return dict(DEFAULT_MATCHER)
+    t = text.strip()
+    if not t.startswith("{"):
+        return t
+    try:
+        d = json.loads(t)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"--matcher {text!r}: not a JSON table ({exc.msg})") from None
+    if not isinstance(d, dict) or "kind" not in d:
+        raise ConfigError(f"--matcher {text!r}: expected a JSON table with a 'kind'")
+    return d
 
 
 def _parse_init(text: str | None) -> tuple[float, float, float, float] | None:
@@ -200,6 +242,7 @@ def run(args: argparse.Namespace) -> int:
         send_while_gnss=args.send_while_gnss,
         ekf_source_set=args.ekf_source_set,
         align=not args.no_align,
+        attitude_aid=not args.no_attitude_aid,
     )
     fmap = load_map(args.map)
     calibration = MagCalibration.from_json(args.calibration) if args.calibration else None
@@ -208,9 +251,14 @@ def run(args: argparse.Namespace) -> int:
     # a MEMS heading from the autopilot's compass (a few degrees) and tilt from levelling with a 10 mg bias
     attitude_sigma = (0.01, 0.01, 0.05) if args.grade == "autopilot" else (0.005, 0.005, 0.02)
 
+    matcher = parse_matcher(args.matcher)
+    from ..aiding.matchers.registry import build_matcher
+
+    build_matcher({"kind": matcher} if isinstance(matcher, str) else matcher)  # a bad option fails now
+
     def factory(nav0, sigma_m):
         return make_online_pipeline(
-            nav0, sigma_m, fmap, grade=args.grade, matcher=args.matcher, fusion=args.fusion,
+            nav0, sigma_m, fmap, grade=args.grade, matcher=matcher, fusion=args.fusion,
             reading_sigma=args.reading_sigma, window=args.window, match_every=args.match_every,
             attitude_sigma_rad=attitude_sigma,
         )  # fmt: skip

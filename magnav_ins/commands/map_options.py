@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from ..core.errors import warn
 from ..core.types import FieldKind
 
 
@@ -91,7 +92,6 @@ def log_to_stderr(args: argparse.Namespace) -> None:
 
 
 def load(args: argparse.Namespace, spec: str) -> Any:
-    from ..core.errors import warn
     from ..core.plausibility import field_values_problem
     from ..maps.io import load_map, parse_column_mapping
 

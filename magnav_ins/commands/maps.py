@@ -4,6 +4,7 @@
     magnav-ins map grid SURVEY --spacing M [--exclude-lines ID,ID,...] [--exclude-tie-lines] [--line-type T]
                    [--exclude-line-type T] [--check-lines T] [--column OURS=THEIRS ...] [--geoid-m N] [--out MAP.nc]
     magnav-ins map sample MAP --points CSV --out CSV [--method bilinear|bicubic]
+    magnav-ins map combine FINE COARSE [--margin-m M] [--blend-m M] [--no-level] --out MAP.nc
     magnav-ins map convert FILE [--unit U] [--kind K] [--altitude-m M] [--datum D] [--crs CRS] [--variable V]
                    [--reproject] --out MAP.nc
 
@@ -41,6 +42,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _add_grid(map_sub)
     _add_sample(map_sub)
     _add_convert(map_sub)
+    _add_combine(map_sub)
     # --- sub-commands defined in other modules register here (one line each) ---
     map_variability.add_parser(map_sub)
 
@@ -331,6 +333,41 @@ def run_convert(args: argparse.Namespace) -> int:
         print(
             f"wrote {out}: {s['kind']} [{s['unit']}], {s['frame']} frame, {s['shape'][0]} x {s['shape'][1]} nodes, "
             f"{100 * s['no_data_fraction']:.1f} % no data, error layer: {'yes' if s['error_layer'] else 'no'}"
+        )
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ combine
+def _add_combine(map_sub: argparse._SubParsersAction) -> None:
+    p = map_sub.add_parser(
+        "combine",
+        help="a fine map over a coarse one (blended edge, levelled, both error layers) -> NetCDF, as MagNav.jl's "
+        "map_combine",
+    )
+    p.add_argument("fine", metavar="FINE", help="the fine map (magnav_ins NetCDF or builtin:NAME; map convert first)")
+    p.add_argument("coarse", metavar="COARSE", help="the coarse (regional) map, same kind")
+    p.add_argument("--margin-m", type=float, default=None, help="widen the fine map's extent by this (default 10 %%)")
+    p.add_argument("--blend-m", type=float, default=None, help="width of the blended edge (default 5 node spacings)")
+    p.add_argument("--no-level", action="store_true", help="do not shift the coarse map onto the fine one's mean")
+    p.add_argument("--out", required=True, metavar="MAP.nc", help="output NetCDF")
+    p.add_argument("--quiet", action="store_true", help="print nothing")
+    p.set_defaults(handler=run_combine)
+
+
+def run_combine(args: argparse.Namespace) -> int:
+    from ..maps.combine import combine_maps
+    from ..maps.io import load_map, write_map
+
+    log_to_stderr(args)
+    fine, coarse = load_map(args.fine), load_map(args.coarse)
+    m = combine_maps(fine, coarse, margin_m=args.margin_m, blend_m=args.blend_m, level=not args.no_level)
+    write_map(m, args.out)
+    if not args.quiet:
+        lv = m.metadata.get("coarse_levelled_by")
+        print(
+            f"wrote {args.out}: {m.shape[0]} x {m.shape[1]} nodes, fine map on {100 * m.metadata['fine_fraction']:.0f} %"
+            + (f", coarse levelled by {lv:+.2f} {m.unit}" if lv is not None else "")
+            + f", error layer: {'yes' if m.has_error_layer else 'no (both maps need one)'}"
         )
     return 0
 

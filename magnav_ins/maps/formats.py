@@ -148,8 +148,11 @@ def open_foreign(path: str | Path, variable: str | None = None) -> ForeignGrid:
         return _open_netcdf(p, variable)
     if suffix == ".grd":
         return _open_geosoft(p)
+    if p.stat().st_size == 0:
+        raise MapError(f"{p}: the file is empty; expected a map (NetCDF, GeoTIFF, ER Mapper, GXF, Geosoft GRD)")
     raise MapError(
-        f"{p}: unknown grid format (expected NetCDF / GMT .nc .grd, GeoTIFF .tif, ER Mapper .ers, Geosoft .gxf .grd)"
+        f"{p}: not a NetCDF file (no NetCDF or HDF5 signature) nor a grid format by its suffix (GeoTIFF .tif, "
+        "ER Mapper .ers, Geosoft .gxf / .grd)"
     )
 
 

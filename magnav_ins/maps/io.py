@@ -283,11 +283,14 @@ def read_map(
     dims = list(da.dims)
     if frame is None:
         frame = "geodetic" if {"latitude", "longitude"} <= set(dims) or {"lat", "lon"} <= set(dims) else None
+        # metres with a CRS (UTM & co.): used in that CRS (a local tangent plane would misplace it)
+        if frame is None and "crs" in ds.attrs and ({"y", "x"} <= set(dims) or {"northing", "easting"} <= set(dims)):
+            frame = "projected"
     if frame == "geodetic":
         ydim = "latitude" if "latitude" in dims else "lat"
         xdim = "longitude" if "longitude" in dims else "lon"
     elif frame in ("local", "projected"):
-        ydim, xdim = "northing", "easting"
+        ydim, xdim = ("y", "x") if frame == "projected" and "y" in dims else ("northing", "easting")
     else:
         if {"x", "y"} <= set(dims) or {"easting", "northing"} <= set(dims) or "crs" in ds.attrs:
             raise MapError(  # a local tangent plane ('local') would misplace a UTM grid by up to hundreds of metres

@@ -161,6 +161,9 @@ class BridgeConfig:
     send_while_gnss: str = "auto"
     ekf_source_set: int | None = None  # MAV_CMD_SET_EKF_SOURCE_SET to this set when the GNSS is lost (and 1 back)
     align: bool = True  # ground alignment while still
+    attitude_aid: bool = True  # the autopilot's attitude (ATTITUDE) as a measurement of the INS attitude
+    attitude_interval_s: float = 1.0
+    attitude_sigma_rad: tuple[float, float, float] = (0.01, 0.01, 0.035)  # tilt about N, E; heading
     statustext_interval_s: float = 2.0
 
     def __post_init__(self) -> None:
@@ -200,7 +203,10 @@ class BridgeConfig:
 
     @property
     def alert_limit(self) -> float:
-        return self.alert_limit_m if self.alert_limit_m is not None else self.max_sigma_m * HPL_PER_SIGMA
+        """The HPL limit, m: ``alert_limit_m``, by default 5 x ``max_sigma_m`` (a protection level carries a
+        fault-detection margin on top of the ``HPL_PER_SIGMA`` sigmas of the covariance: after GNSS-aided flight the
+        integrity monitor's HPL is about ten sigmas)."""
+        return self.alert_limit_m if self.alert_limit_m is not None else 5.0 * self.max_sigma_m
 
     @property
     def gnss_instance(self) -> int:
@@ -230,6 +236,8 @@ class BridgeHealth:
     map_fixes_accepted: int = 0
     gnss_fixes: int = 0
     gnss_fixes_accepted: int = 0
+    attitude_updates: int = 0
+    attitude_accepted: int = 0
     gnss_losses: int = 0
     outputs_sent: int = 0
     untrusted_outputs: int = 0
@@ -246,6 +254,8 @@ class BridgeHealth:
     sample_type: str = ""
     mag_unit: str = ""
     field_offset_nt: float = math.nan
+    no_fix_reasons: dict[str, int] = field(default_factory=dict)
+    rejected_reasons: dict[str, int] = field(default_factory=dict)
     last_imu_t: float = math.nan
     history: list[str] = field(default_factory=list)
 
@@ -380,6 +390,7 @@ class Bridge:
         self._gnss_state_seen = "none"
         self._last_gnss_fix: GnssMessage | None = None
         self._last_gnss_fix_t = -math.inf
+        self._last_attitude_aid_t = -math.inf
         self._source_set_sent: int | None = None
         self._still = StillDetector()
         self._aligner = GroundAlignment()
@@ -468,6 +479,7 @@ class Bridge:
         elif isinstance(msg, AttitudeMessage):
             self._stream_rx["ATTITUDE"] = now
             self._last_attitude = (msg, now)
+            self._attitude_aid(msg)
         elif isinstance(msg, PositionMessage):
             self._stream_rx["GLOBAL_POSITION_INT"] = now
             if msg.lat == 0.0 and msg.lon == 0.0:  # ArduPilot's "no position yet"
@@ -507,6 +519,23 @@ class Bridge:
                     self._next_request = 0.0  # a udpin link can only answer once the autopilot has spoken
                 self._ap_heartbeat_at = now
                 self._autopilot_type = msg.autopilot
+
+    def _attitude_aid(self, m: AttitudeMessage) -> None:
+        """The autopilot's attitude (its AHRS: accelerometers for the tilt, compass for the heading) every
+        ``attitude_interval_s`` as a measurement of the INS attitude (:meth:`.online.OnlinePipeline.push_attitude`):
+        it keeps a MEMS INS's tilt and heading from running away between map fixes."""
+        c = self.config
+        p = self._pipeline
+        if not c.attitude_aid or p is None or not hasattr(p, "push_attitude"):
+            return
+        if m.t - self._last_attitude_aid_t < c.attitude_interval_s and m.t >= self._last_attitude_aid_t:
+            return
+        inn = p.push_attitude(m.t, q_nb_from_euler(m.roll, m.pitch, m.yaw), c.attitude_sigma_rad)
+        if inn is None:
+            return
+        self._last_attitude_aid_t = m.t
+        self.health.attitude_updates += 1
+        self.health.attitude_accepted += int(inn.accepted)
 
     def _on_command(self, m: CommandMessage) -> None:
         c = self.config
@@ -889,6 +918,14 @@ class Bridge:
         self.health.map_fixes += len(fixes) - n0
         self.health.map_fixes_issued += sum(1 for f in fixes[n0:] if f.available)
         self.health.map_fixes_accepted += sum(1 for x in inns[i0:] if x.accepted)
+        for f in fixes[n0:]:
+            if not f.available:
+                key = f.reason.split(":")[0] or "unspecified"
+                self.health.no_fix_reasons[key] = self.health.no_fix_reasons.get(key, 0) + 1
+        for x in inns[i0:]:
+            if not x.accepted and x.reason and x.reason != "no fix":
+                key = x.reason.split(" ")[0] if x.reason.startswith(("NIS", "window")) else x.reason.split(":")[0]
+                self.health.rejected_reasons[key] = self.health.rejected_reasons.get(key, 0) + 1
         self._counted = (p, len(fixes), len(inns), 0)
 
     def _restart_from_estimate(self, t: float, reason: str, extra_sigma_m: float) -> None:

@@ -117,7 +117,11 @@ def maganom_value(world: tuple[float, float, float, float, np.ndarray], lat: flo
 
 
 def grid_to_maganom(
-    fmap, path: str | os.PathLike[str], step_m: float = 50.0, *, fill: bool = True  # noqa: ANN001
+    fmap,
+    path: str | os.PathLike[str],
+    step_m: float = 50.0,
+    *,
+    fill: bool = True,  # noqa: ANN001
 ) -> tuple[int, int]:
     """Sample a total-field :class:`~magnav_ins.maps.grid.GridMap` (any frame) on a regular lat/lon grid of about
     ``step_m`` spacing over its bounding box (bilinear) and write it as MAGANOM1. Returns the shape. ``fill``: nodes
@@ -279,7 +283,11 @@ def osborne_world(path: str | os.PathLike[str] | None = None, step_m: float = 50
 
     if not OSBORNE_SURVEY.is_file():
         raise InputError(f"{OSBORNE_SURVEY}: the Osborne survey is not there (../shared/data)")
-    out = Path(path) if path is not None else Path(tempfile.gettempdir()) / f"magnav-osborne-world-{step_m:g}m-filled.maganom"
+    out = (
+        Path(path)
+        if path is not None
+        else Path(tempfile.gettempdir()) / f"magnav-osborne-world-{step_m:g}m-filled.maganom"
+    )
     if out.is_file() and out.stat().st_mtime >= OSBORNE_SURVEY.stat().st_mtime:
         return out
     survey = read_survey(OSBORNE_SURVEY, geoid_undulation_m=0.0)

@@ -369,6 +369,40 @@ SCHEMA: tuple[ScenarioKey, ...] = (
     ScenarioKey("map", "exclude_line_type", "string", 'leave out the survey lines of this type (e.g. "TIE")', None),
     ScenarioKey(
         "map",
+        "error_sigma",
+        "number",
+        "a uniform map error layer: 1-sigma map error in the map's unit",
+        None,
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "error_correlation_m",
+        "number",
+        "correlation length of error_sigma, m (with error_sigma)",
+        None,
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "unit",
+        "string",
+        "unit of a downloaded grid's values if the file states none or an impossible one (nT; mGal, um/s^2, m/s^2)",
+        None,
+    ),
+    ScenarioKey("map", "altitude_m", "number", "ellipsoidal height of a downloaded grid's surface, m", None),
+    ScenarioKey(
+        "map", "datum", "string", "datum of a downloaded latitude/longitude grid that does not say (WGS84)", None
+    ),
+    ScenarioKey(
+        "map", "crs", "string", "CRS of a downloaded grid in metres that does not say (EPSG:NNNN, PROJ, WKT)", None
+    ),
+    ScenarioKey("map", "variable", "string", "the data variable of a file holding several grids", None),
+    ScenarioKey("map", "reproject", "boolean", "resample a projected grid onto latitude/longitude", False),
+    ScenarioKey(
+        "map",
         "allow_implausible",
         "boolean",
         "accept map values implausible for the map's kind (e.g. full gravity as a disturbance)",
@@ -648,6 +682,7 @@ class MapConfig:
     crs: str | None = None
     variable: str | None = None
     reproject: bool = False
+    allow_implausible: bool = False
 
     def grid_options(self) -> dict[str, Any]:
         """The keys of a grid file as downloaded (``unit``, ``altitude_m``, ``datum``, ``crs``, ``variable``,
@@ -1059,9 +1094,6 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     if kw and not path.lower().endswith(SURVEY_SUFFIXES):
         k = sorted(kw)[0]
         raise ctx.error(f"map.{k}", "applies to a survey CSV map (gridded on load), not to a grid file")
-    allow = t.get("allow_implausible", False)
-    if not isinstance(allow, bool):
-        raise ctx.error("map.allow_implausible", f"expected true or false, got {allow!r}")
     grid_kw: dict[str, Any] = {}
     for k in ("unit", "datum", "crs", "variable"):
         if k in t:
@@ -1084,6 +1116,9 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
         if "error_sigma" not in t:
             raise ctx.error("map.error_correlation_m", "needs error_sigma (1-sigma map error in the map's unit)")
         kw["error_correlation_m"] = _number(ctx, "map.error_correlation_m", t["error_correlation_m"], positive=True)
+    allow = t.get("allow_implausible", False)
+    if not isinstance(allow, bool):
+        raise ctx.error("map.allow_implausible", f"expected true or false, got {allow!r}")
     return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), allow_implausible=allow, **kw)
 
 
