@@ -21,9 +21,28 @@ For a batch of ``T`` scans (field readings ``s_t`` with INS-indicated positions 
    fixed 0.05 m/sqrt(s) made the batch rigid; until 2026-12 the step was the growth of the sigma,
    ``(sigma_{t+1} - sigma_t)^2``, about ``T`` times too small over a batch).
 4. Output: ``mode="standard"`` one fix at the last scan (smoothed state, covariance ``P_T|T``); ``"retrodiction"``
-   a fix per scan (:meth:`PMHTMatcher.match_all`, smoothed covariances). The fix covariance is weighted by the map
-   feature variability (eq. 14) ``C``: multiplied by ``max(1, variability_ref / (C / s^2))``; aiding stops (no fix,
-   "flat map") where ``sqrt(C) < min_variability * s``.
+   a fix per scan with their joint covariance (:meth:`PMHTMatcher.match_batch`, fused by the pipeline as one
+   correlated measurement, ``Fuser.correct_batch``; :meth:`PMHTMatcher.match_all` gives the smoothed states). The
+   fix covariance is weighted by the map feature variability (eq. 14) ``C``: multiplied by
+   ``max(1, variability_ref / (C / s^2))``; aiding stops (no fix, "flat map") where ``sqrt(C) < min_variability * s``
+   (off by default: ``min_variability = 0``). ``C`` is the mean over the batch, over the gate box of each scan, or
+   (``variability_window_m``, Wang's "fixed search window template") over a square window of that size about each
+   scan.
+
+Reading variance: ``s^2`` = the gravimeter's variance plus the map's error (``map_error.resolve_map_error``: the
+``map_sigma`` option, else the map's error layer, else the stated default), the map-error part counted once per
+correlation length along the track (:mod:`._batch`).
+
+Issuing rule (issue 16): a fix is issued whenever its covariance is smaller than the INS prior's in some direction
+(:func:`._batch.adds_information`); it is "flat map" only when it adds no information. A retrodiction batch is
+issued or refused as a whole, by its last scan.
+
+The ``wang`` preset (``build_matcher({"kind": "pmht", "preset": "wang", ...})``, :attr:`PMHTMatcher.PRESETS`):
+PMHT-MM as published - CV kinematics (eq. 6-7), the INS covariance as the EM's prior (eq. 11), candidates weighted by
+their distance to the prediction only (eq. 3, 10), eq. 5's variance without the PDA spread, no clutter hypothesis,
+no value gate, none of the covariance floors or divergence checks below; eq. 14 over a fixed 5 km window (Wang's
+window size) weights the covariance by ``max(1, 1 / (C / s^2))`` and stops the aiding where
+``sqrt(C) < s / 4``. Wang gives neither number: the weighting reference (C = s^2) and the stop threshold are ours.
 
 Fix covariance (ours): the EM's smoothed covariance ``P_k|T`` describes the mode the EM climbed only and is far
 too small on smooth maps (fix NEES 10-20 at 1 mGal, 100-1000 with the tactical IMU on the EIGEN-6C4 10' gravity
@@ -40,9 +59,9 @@ pair: no double counting), never by a sum:
   used (fix NEES 1.98 over the 40 trials); on the 10' gravity grid it always is (0.03-0.1 of the mass near the
   fix), and it is what covers a wrong mode or a long along-track ridge.
 
-With ``partial_fixes`` a fix is refused ("flat map") only when its sigma exceeds the gate half-width in every
-direction (a fix along a straight line over a smooth map fixes the cross-track position only); variances are capped
-at ``(10 max h)^2``.
+Variances are capped at ``(10 max h)^2``; with ``partial_fixes = False`` a fix is also refused when its sigma
+exceeds the gate half-width in any direction (a fix along a straight line over a smooth map fixes the cross-track
+position only, and is issued by default).
 
 Departure from the paper, stated: by default (``use_prior=False``) the position prior of the forward filter is
 diffuse (the INS prior only centres the gates and starts the EM), so the fix is independent of the INS and can be
@@ -321,50 +340,6 @@ def _loewner_max(A: FloatArray, B: FloatArray, big: float, information: bool = F
     return 0.5 * (out + out.T)
 
 
-def _smoothed_joint(
-    zbar: FloatArray, Rbar: FloatArray, F: FloatArray, Q: FloatArray, u: FloatArray, x0: FloatArray, P0: FloatArray
-) -> FloatArray:
-    """Joint covariance (2T, 2T) of the smoothed positions of the batch (north/east of each scan, scan order) for the
-    final pseudo-measurements ``zbar`` / ``Rbar`` of the EM: the forward Kalman filter and RTS smoother of eq. 12-13
-    with the cross-covariances ``P_{t,s|T} = G_t P_{t+1,s|T}`` (s > t; Rauch, Tung & Striebel 1965). The EM's
-    returned smoothed states are those of this very pass, so the marginals agree with ``PMHTResult.P``."""
-    T = zbar.shape[0]
-    d = x0.shape[0]
-    xf = np.zeros((T, d))
-    Pf = np.zeros((T, d, d))
-    Pp = np.zeros((T, d, d))
-    H = np.zeros((2, d))
-    H[0, 0] = H[1, 1] = 1.0
-    for t in range(T):
-        if t == 0:
-            xp, Pp[0] = x0, P0
-        else:
-            xp = F[t - 1] @ xf[t - 1] + u[t - 1]
-            Pp[t] = F[t - 1] @ Pf[t - 1] @ F[t - 1].T + Q[t - 1]
-        if np.isfinite(zbar[t, 0]):
-            S = H @ Pp[t] @ H.T + Rbar[t]
-            K = Pp[t] @ H.T @ np.linalg.inv(S)
-            xf[t] = xp + K @ (zbar[t] - H @ xp)
-            Pf[t] = Pp[t] - K @ H @ Pp[t]
-            Pf[t] = 0.5 * (Pf[t] + Pf[t].T)
-        else:
-            xf[t], Pf[t] = xp, Pp[t]
-    Ps = np.zeros((T, d, d))
-    Ps[T - 1] = Pf[T - 1]
-    G = np.zeros((T, d, d))
-    for t in range(T - 2, -1, -1):
-        G[t] = Pf[t] @ F[t].T @ np.linalg.inv(Pp[t + 1])
-        Ps[t] = Pf[t] + G[t] @ (Ps[t + 1] - Pp[t + 1]) @ G[t].T
-    full = np.zeros((T, T, d, d))
-    for s_ in range(T):
-        full[s_, s_] = Ps[s_]
-        for t in range(s_ - 1, -1, -1):
-            full[t, s_] = G[t] @ full[t + 1, s_]
-            full[s_, t] = full[t, s_].T
-    pos = full[:, :, :2, :2].transpose(0, 2, 1, 3).reshape(2 * T, 2 * T)
-    return 0.5 * (pos + pos.T)
-
-
 # ---------------------------------------------------------------------------------------------- matcher
 @dataclass
 class PMHTResult:
@@ -389,7 +364,6 @@ class PMHTResult:
     fisher: FloatArray
     ambiguity: tuple[FloatArray, FloatArray, FloatArray] | None = None
     cov_prior: FloatArray | None = None
-    joint: FloatArray | None = None
 
 
 @dataclass
@@ -669,11 +643,9 @@ class PMHTMatcher:
         G = G[good & np.all(np.isfinite(G), axis=(1, 2))]
         J = np.einsum("tci,tcj->ij", G, G) / s2
         amb = self._ambiguity(frame, z, good, x_ins, half, X, g2, s2, rel_drift) if self.ambiguity_floor else None
-        joint = _smoothed_joint(zbar, Rbar, F, Q, u, X0[0].copy(), P0)
         return PMHTResult(
-            X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J, amb,
-            cov, joint,
-        )  # fmt: skip
+            X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J, amb, cov
+        )
 
     def _ambiguity(
         self,
@@ -798,45 +770,54 @@ class PMHTMatcher:
         return self._fix(res, len(res.t) - 1)
 
     def match_batch(self, window: MatchWindow, fmap: FieldMap) -> tuple[list[Fix], FloatArray]:
-        """Retrodiction mode for fusing (Wang sec. 3.3): a fix per scan of the batch (as :meth:`match_all`) and the
-        joint covariance (2J, 2J) m^2 of the J available ones (north/east per fix, in time order), so that the
-        fuser can take the batch as one correlated measurement (``Fuser.correct_batch``).
+        """Retrodiction mode for fusing (Wang sec. 3.3): a fix per scan of the batch and the joint covariance
+        (2J, 2J) m^2 of the J available ones (north/east per fix, in time order), for ``Fuser.correct_batch``.
 
-        The joint is the EM's smoothed joint covariance (:func:`_smoothed_joint`) carried onto the fixes' own
-        covariances by a congruence: with ``L_k`` the Cholesky factor of the smoother's marginal at scan k and ``M_k``
-        that of the fix covariance, the blocks become ``M_k L_k^-1 P_{k,l} L_l^-T M_l^T``. The marginals are then
-        exactly the fixes' covariances (with their floors and eq. 14 weighting) and the scans keep the smoother's
-        correlation (nearly one: the batch is a rigid track)."""
+        What is fused is the readings' evidence only. The EM's smoothed states are not: their relative geometry is
+        the INS track itself (the batch moves with the INS displacement, its random walk is the INS's own variance
+        growth), so fusing them would give the fuser back its own INS information about the motion within the batch
+        as if it were new (tried: Melbourne -> Sydney, filter NEES 351). Instead the fixes are the final PDA
+        pseudo-measurements ``zbar_k`` (eq. 4) with their covariances ``Rbar_k`` (eq. 5), independent across scans
+        given the associations, plus one common-mode term ``E`` shared by every scan: the part of the standard-mode
+        fix covariance (with its floors: variance factor, Cramer-Rao, ambiguity, eq. 14) that a rigid offset
+        estimated from the pseudo-measurements alone, ``(sum_k Rbar_k^-1)^-1``, does not cover (its positive part).
+        Joint: ``blockdiag(Rbar_k) + 1 1^T (x) E``. The batch is issued or refused as a whole, by the standard-mode
+        rules at its last scan (information over the prior, divergence checks)."""
         res = self._run_safe(window, fmap)
         if isinstance(res, str):
             T = min(self.batch, len(window.readings))
             return [Fix.no_fix(float(t), res, self.name) for t in window.readings.t[len(window.readings) - T :]], (
                 np.zeros((0, 0))
             )
-        # the batch is issued or refused as a whole, by the information its last scan adds over the INS prior
         last = self._fix(res, len(res.t) - 1)
         if not last.available:
             return [Fix.no_fix(float(t), last.reason, self.name, last.score) for t in res.t], np.zeros((0, 0))
-        fixes = [self._fix(res, k, check_information=False) for k in range(len(res.t))]
-        ok = [k for k, f in enumerate(fixes) if f.available]
-        if not ok:
-            return fixes, np.zeros((0, 0))
-        joint = res.joint
-        blocks = []
-        for k in ok:
-            Pk = joint[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
-            Lk = np.linalg.cholesky(0.5 * (Pk + Pk.T) + 1e-9 * np.eye(2) * max(float(np.trace(Pk)), 1e-12))
-            Mk = np.linalg.cholesky(0.5 * (fixes[k].cov_ne + fixes[k].cov_ne.T))
-            blocks.append(Mk @ np.linalg.inv(Lk))
-        A = np.zeros((2 * len(ok), 2 * len(ok)))
+        ok = [
+            k
+            for k in range(len(res.t))
+            if np.all(np.isfinite(res.zbar[k])) and np.all(np.isfinite(res.Rbar[k])) and np.linalg.det(res.Rbar[k]) > 0
+        ]
+        if len(ok) < 2:
+            reason = f"diverged: only {len(ok)} scans with a pseudo-measurement"
+            return [Fix.no_fix(float(t), reason, self.name, res.nis) for t in res.t], np.zeros((0, 0))
+        info = sum(np.linalg.inv(res.Rbar[k]) for k in ok)
+        C_pm = np.linalg.inv(info)
+        ev, V = np.linalg.eigh(0.5 * (last.cov_ne - C_pm + (last.cov_ne - C_pm).T))
+        E = (V * np.maximum(ev, 0.0)) @ V.T
+        fixes: list[Fix] = []
+        J = len(ok)
+        joint = np.kron(np.ones((J, J)), E)
         for i, k in enumerate(ok):
-            for j, m in enumerate(ok):
-                A[2 * i : 2 * i + 2, 2 * j : 2 * j + 2] = joint[2 * k : 2 * k + 2, 2 * m : 2 * m + 2]
-        B = np.zeros_like(A)
-        for i in range(len(ok)):
-            B[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = blocks[i]
-        C = B @ A @ B.T
-        return fixes, 0.5 * (C + C.T)
+            R = 0.5 * (res.Rbar[k] + res.Rbar[k].T)
+            joint[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] += R
+        for k in range(len(res.t)):
+            if k in ok:
+                lat, lon = res.frame.to_latlon(res.zbar[k, 0], res.zbar[k, 1])
+                C = 0.5 * (res.Rbar[k] + res.Rbar[k].T) + E
+                fixes.append(Fix(float(res.t[k]), float(lat), float(lon), C, True, "", res.nis, self.name))
+            else:
+                fixes.append(Fix.no_fix(float(res.t[k]), "no map candidate at this scan", self.name, res.nis))
+        return fixes, 0.5 * (joint + joint.T)
 
     def match_all(self, window: MatchWindow, fmap: FieldMap) -> list[Fix]:
         """Retrodiction mode: a fix per scan of the batch (smoothed states and covariances)."""
