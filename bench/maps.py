@@ -1,6 +1,6 @@
 """Map interpolation speed (vs scipy) and Osborne survey gridding: time and tie-line cross-validation.
 
-    python bench/maps.py [--json] [--points N] [--no-survey] [--only interp|osborne|rio]
+    python bench/maps.py [--json] [--points N] [--no-survey] [--only interp|osborne|rio|error_layer]
 
 * 1 M random bilinear / bicubic value queries and bilinear gradients on a 500 x 600 geodetic grid, against
   ``scipy.interpolate.RegularGridInterpolator`` (linear) and ``scipy.ndimage.map_coordinates`` (cubic spline, order 3)
@@ -10,6 +10,7 @@
   readings: RMS misfit overall and per line, for the bidirectional gridder and for linear triangulation.
 * Rio de Janeiro 1978 (``../shared/data/rio_magnetic/``, read as downloaded through a column mapping): grid the flight
   lines (``LINE``), predict the tie lines (``TIE``).
+* The map error layer on those tie lines: RMS of (map - reading) / sigma (about 1 when honest), tails, correlation.
 """
 
 from __future__ import annotations
@@ -129,7 +130,7 @@ def bench_osborne() -> dict:
     t_read = time.perf_counter() - t
     ties = cross_lines(s)
     t = time.perf_counter()
-    full = grid_survey(s, 50.0)
+    full = grid_survey(s, 50.0, error_folds=0)
     t_full = time.perf_counter() - t
     out: dict = {
         "osborne_readings": len(s),
@@ -146,7 +147,7 @@ def bench_osborne() -> dict:
         ("linear_triangulation_50m", "linear", 50.0),
     ):
         t = time.perf_counter()
-        m = grid_survey(s, spacing, exclude_lines=ties, method=method)
+        m = grid_survey(s, spacing, exclude_lines=ties, method=method, error_folds=0)
         tg = time.perf_counter() - t
         r = tie_line_misfit(m, s, ties)
         n = sum(v["n"] for v in r.values())
@@ -195,7 +196,7 @@ def bench_rio() -> dict:
         ("linear_triangulation_250m", "linear", 250.0),
     ):
         t = time.perf_counter()
-        m = grid_survey(flight, spacing, method=method)
+        m = grid_survey(flight, spacing, method=method, error_folds=0)
         tg = time.perf_counter() - t
         r = tie_line_misfit(m, s, ties)
         n = sum(v["n"] for v in r.values())
@@ -216,12 +217,53 @@ def bench_rio() -> dict:
     return out
 
 
+def _z_stats(fmap, survey) -> dict:
+    r = fmap.value(survey.lat, survey.lon) - survey.value
+    sig = fmap.error_sigma_at(survey.lat, survey.lon)
+    ok = np.isfinite(r) & np.isfinite(sig)
+    z = r[ok] / sig[ok]
+    zd = (r[ok] - r[ok].mean()) / sig[ok]
+    return {
+        "points": int(ok.sum()),
+        "misfit_rms": float(np.sqrt(np.mean(r[ok] ** 2))),
+        "misfit_mean": float(r[ok].mean()),
+        "sigma_median": float(np.median(sig[ok])),
+        "z_rms": float(np.sqrt(np.mean(z**2))),
+        "z_rms_demeaned": float(np.sqrt(np.mean(zd**2))),
+        "z_robust_sd": float(1.4826 * np.median(np.abs(z - np.median(z)))),
+        "frac_abs_z_gt_2": float(np.mean(np.abs(z) > 2)),
+        "frac_abs_z_gt_3": float(np.mean(np.abs(z) > 3)),
+        "correlation_m": float(fmap.error_correlation_m),
+    }
+
+
+def bench_error_layer() -> dict:
+    """Honesty of the map error layer on tie lines not used for the map: the shipped Osborne map (the calibration
+    case of ``ERROR_INFLATION``) against its 22 tie lines, and Rio (not tuned on) gridded from LINE, checked on TIE."""
+    from magnav_ins.maps.build import grid_survey
+    from magnav_ins.maps.builtin import load_map, load_survey_lines
+    from magnav_ins.maps.io import read_survey, select_lines
+
+    out = {"osborne_shipped_100m": _z_stats(load_map("builtin:osborne-magnetic"), load_survey_lines())}
+    path = SHARED / "rio_magnetic" / "rio-magnetic.csv.xz"
+    if path.is_file():
+        s = read_survey(path, columns={"height_ellipsoidal_m": "height_ell_m", "line": "line_number"})
+        t = time.perf_counter()
+        m = grid_survey(select_lines(s, line_type="LINE"), 250.0)
+        out["rio_250m"] = {**_z_stats(m, s.of_type("TIE")), "grid_with_cv_s": time.perf_counter() - t}
+        m1 = grid_survey(select_lines(s, line_type="LINE"), 250.0, error_inflation=1.0)
+        out["rio_250m_no_inflation"] = _z_stats(m1, s.of_type("TIE"))
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     ap.add_argument("--points", type=int, default=1_000_000)
     ap.add_argument("--no-survey", action="store_true", help="skip the Osborne and Rio gridding parts")
-    ap.add_argument("--only", choices=["interp", "osborne", "rio"], default=None, help="run one part only")
+    ap.add_argument(
+        "--only", choices=["interp", "osborne", "rio", "error_layer"], default=None, help="run one part only"
+    )
     args = ap.parse_args()
     res = {}
     if args.only in (None, "interp"):
@@ -230,6 +272,8 @@ def main() -> None:
         res["osborne"] = bench_osborne()
     if not args.no_survey and args.only in (None, "rio"):
         res["rio"] = bench_rio()
+    if not args.no_survey and args.only in (None, "error_layer"):
+        res["error_layer"] = bench_error_layer()
     if args.json:
         print(json.dumps(res))
     else:

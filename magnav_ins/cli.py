@@ -20,7 +20,7 @@ from .core.errors import MagnavError
 from .core.signals import EXIT_SIGINT, EXIT_SIGTERM, Terminated, stop_signals_raise
 
 #: command-group modules under ``magnav_ins.commands``, in the order ``--help`` lists them
-COMMAND_MODULES: tuple[str, ...] = ("demo", "ins", "calibrate", "run", "maps", "bridge", "replay")
+COMMAND_MODULES: tuple[str, ...] = ("demo", "ins", "calibrate", "run", "suite", "maps", "bridge", "replay")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -40,7 +40,16 @@ from numpy.typing import NDArray
 from .core.errors import ConfigError, InputError
 from .core.frames import latlon_to_meters, meters_to_latlon
 from .core.protocols import FieldMap, MatchWindow
-from .core.types import FieldKind, FieldReadings, Fix, ImuBatch, Innovation, NavEstimate, NavTrajectory
+from .core.types import (
+    DEFAULT_INTEGRITY_RISK,
+    FieldKind,
+    FieldReadings,
+    Fix,
+    ImuBatch,
+    Innovation,
+    NavEstimate,
+    NavTrajectory,
+)
 
 FloatArray = NDArray[np.float64]
 HeightAid = Callable[[float], "tuple[float, float] | None"]
@@ -50,13 +59,16 @@ _TOL = 1e-9
 @dataclass(frozen=True)
 class PipelineResult:
     """What an offline run produced: ``trajectory`` (estimated states at the output times), ``P`` (N,15,15) the
-    fuser's covariance at those times (LAYOUT_15), every ``fixes`` the matcher issued (including "no fix") and every
-    fuser ``innovations`` (accepted or rejected with a reason)."""
+    fuser's covariance at those times (LAYOUT_15), every ``fixes`` the matcher issued (including "no fix"), every
+    fuser ``innovations`` (accepted or excluded with a reason) and ``hpl_m`` (N,) the fuser's horizontal protection
+    level at the output times (m, at ``integrity_risk``; NaN where the fuser gives none)."""
 
     trajectory: NavTrajectory
     P: FloatArray
     fixes: list[Fix] = field(default_factory=list)
     innovations: list[Innovation] = field(default_factory=list)
+    hpl_m: FloatArray = field(default_factory=lambda: np.zeros(0))
+    integrity_risk: float = DEFAULT_INTEGRITY_RISK
 
 
 @dataclass
@@ -314,4 +326,6 @@ class Pipeline:
             np.array([n.q_nb for n in navs]).reshape(-1, 4),
         )
         P = np.array([np.asarray(o.P)[:15, :15] for o in outs]).reshape(-1, 15, 15)
-        return PipelineResult(traj, P, list(self.fixes), list(self.innovations))
+        hpl = np.array([float(o.hpl_m) for o in outs], dtype=float)
+        risk = float(outs[0].integrity_risk) if outs else DEFAULT_INTEGRITY_RISK
+        return PipelineResult(traj, P, list(self.fixes), list(self.innovations), hpl, risk)

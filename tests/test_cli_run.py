@@ -82,3 +82,56 @@ def test_run_user_errors_exit_2(tmp_path, capsys):
 def test_cli_registers_run():
     cli = pytest.importorskip("magnav_ins.cli")
     assert "run" in cli.COMMAND_MODULES
+
+
+OFF_MAP = """\
+name = "radians_as_degrees"
+seed = 1
+runs = 1
+
+[trajectory]
+kind = "great_circle"
+start = [-0.6632, 2.5220]   # -38.0, 144.5 deg written in radians
+end = [-0.6630, 2.5224]
+altitude_m = 10000.0
+speed_mps = 100.0
+duration_s = 20.0
+
+[imu]
+grade = "tactical"
+rate_hz = 10.0
+
+[map]
+path = "builtin:eigen6c4-australia-se"
+kind = "gravity_disturbance_mgal"
+
+[sensor]
+kind = "gravimeter"
+sigma = 1.0
+interval_s = 1.0
+
+[[estimator]]
+name = "mlr+ukf"
+matcher = { kind = "mlr" }
+fusion = { kind = "ukf" }
+"""
+
+
+def test_trajectory_off_the_map_is_said(tmp_path, capsys):
+    """A study that can never get a fix still runs, but says why, on the terminal and in metrics.json / report.md
+    (it used to exit 0 with 0 fix attempts and no word)."""
+    from magnav_ins.cli import main
+
+    sc = tmp_path / "off.toml"
+    sc.write_text(OFF_MAP)
+    out = tmp_path / "out"
+    assert main(["run", str(sc), "--out", str(out), "--quiet", "--no-plots"]) == 0
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("magnav-ins: warning: ")]
+    assert len(err) == 2, err
+    assert "'trajectory'" in err[0] and "never crosses the map builtin:eigen6c4-australia-se" in err[0]
+    assert "radians written as degrees?" in err[0]
+    assert "estimator 'mlr+ukf': no fix attempt" in err[1]
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["estimators"]["mlr+ukf"]["fix_attempts"] == 0
+    assert [f"magnav-ins: warning: {w}" for w in doc["warnings"]] == err
+    assert all(w in (out / "report.md").read_text() for w in doc["warnings"])

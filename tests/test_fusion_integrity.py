@@ -190,6 +190,9 @@ def test_replay_sample_ulg_with_init_runs_with_every_fuser(shared_data, tmp_path
     assert res.returncode == 0, res.stderr[-2000:]
     rows = out.read_text().splitlines()
     assert len(rows) > 90 and "Traceback" not in res.stderr
+    assert rows[0].split(",")[-1] == "hpl_m"
+    hpl = np.array([float(r.split(",")[-1]) for r in rows[1:]])
+    assert np.all(np.isfinite(hpl) & (hpl > 0))
 
 
 def test_fuser_options_match_the_constructors() -> None:
@@ -206,3 +209,18 @@ def test_fuser_options_match_the_constructors() -> None:
     assert set(FUSER_OPTIONS["ukf"]) == kw(UkfFuser)
     assert set(FUSER_OPTIONS["graph"]) == kw(GraphFuser)
     assert set(FUSER_OPTIONS["free_inertial"]) == kw(InertialCore) | {"gate_probability"}
+
+
+def test_rejected_batch_is_a_fault_and_widens_the_hpl() -> None:
+    """A batch of correlated fixes (PMHT retrodiction, :mod:`aiding.fusion.batch`) displaced 2 km with small sigmas
+    is excluded, counted as a fault, and the protection level covers the hypothesis that the filter is wrong."""
+    init, imu, fixes = run_inputs(0)
+    f = make_fuser("ukf", init, noise())
+    batch = [displaced(fx, np.random.default_rng(7), 2000.0, 2000.0) for fx, _ in fixes[:3]]
+    shift = [dataclasses.replace(b, lat=batch[0].lat + (fx.lat - fixes[0][0].lat), lon=batch[0].lon + (fx.lon - fixes[0][0].lon))
+             for b, (fx, _) in zip(batch, fixes[:3], strict=True)]  # fmt: skip
+    f.propagate(imu.slice(0, int(np.searchsorted(imu.t, shift[-1].t + 1e-9, side="right"))))
+    hpl0 = f.estimate().hpl_m
+    inn = f.correct_batch(shift, np.kron(np.eye(3), np.array([[25.0, 6.0], [6.0, 16.0]])))
+    assert not inn.accepted and inn.extra.get("fault") == 1.0 and f.monitor.n_faults == 1
+    assert f.estimate().hpl_m > 1500.0 > 10 * hpl0

@@ -247,8 +247,9 @@ def test_bridge_height_follows_a_climb_with_a_barometer(climb_flight, pressure_r
     port = _free_udp_port()
     link = MavLink(f"udpin:127.0.0.1:{port}", source_system=1, peer_system=1, peer_component=1)
     config = BridgeConfig(
-        output="global_position_sensor", output_rate_hz=10.0, init_sigma_m=10.0, reading_interval_s=0.5
-    )
+        output="global_position_sensor", output_rate_hz=10.0, init_sigma_m=10.0, reading_interval_s=0.5,
+        send_while_gnss="yes", sample_type="mean",
+    )  # fmt: skip
 
     def factory(nav0, sigma_m):
         return make_online_pipeline(nav0, sigma_m, fmap, grade="tactical", matcher="mlr", fusion="ukf")
@@ -314,7 +315,7 @@ def test_bridge_sends_the_baro_height_and_climb_rate_and_says_when_the_baro_is_l
     lat, lon = START
     now = [0.0]
     link = _FakeLink()
-    config = BridgeConfig(output="gps_input", output_rate_hz=5.0, init=(lat, lon, 250.0, 0.3))
+    config = BridgeConfig(output="gps_input", output_rate_hz=5.0, init=(lat, lon, 250.0, 0.3), sample_type="mean")
     bridge = Bridge(
         link,  # type: ignore[arg-type]
         config,

@@ -101,9 +101,12 @@ def osborne():
 
 
 def _bridge(port: int, fmap, date: str, output: str, key: bytes | None = None) -> Bridge:
-    """As in test_mavlink_bridge.py: the bridge's link is ``udpin``, the autopilot is system 1 component 1."""
+    """As in test_mavlink_bridge.py: the bridge's link is ``udpin``, the autopilot is system 1 component 1; GPS_INPUT
+    goes to GPS2 (GPS_RAW_INT is the emulator's own GNSS) and positions are sent while that GNSS is healthy."""
     link = MavLink(f"udpin:127.0.0.1:{port}", source_system=1, peer_system=1, peer_component=1, signing_key=key)
-    config = BridgeConfig(output=output, output_rate_hz=5.0, init_sigma_m=10.0)
+    config = BridgeConfig(
+        output=output, output_rate_hz=5.0, init_sigma_m=10.0, gps_id=1, send_while_gnss="yes", sample_type="mean"
+    )
 
     def factory(nav0, sigma_m):
         return make_online_pipeline(nav0, sigma_m, fmap, grade="tactical", matcher="mlr", fusion="ukf")
@@ -183,7 +186,7 @@ def test_bridges_behind_mavproxy_get_imu_and_reach_the_autopilot(osborne, tmp_pa
     assert asks and all(c.compid == MAV_COMP_ID_ONBOARD_COMPUTER for c in asks)
     assert rec.imu_sent > 200
     for b in bridges.values():  # the IMU crossed MAVProxy to both outputs
-        assert b.health.imu_samples > 200 and b.health.state == "running" and b.health.healthy
+        assert b.health.imu_samples > 200 and b.health.state in ("aligning", "running") and b.health.healthy
         assert b.link.stats.bad_data == 0 and b.link.stats.rejected_signature == 0
     # heartbeats of the companion computer (not MAVProxy's own GCS heartbeats) and positions came back within 5 s
     assert rec.first_heartbeat_s is not None and rec.first_heartbeat_s < 5.0
@@ -233,6 +236,10 @@ def test_cli_bridge_sends_heartbeats_and_gps_input_and_exits_0(osborne):
         "50",
         "--date",
         flight.date,
+        "--gps-id",  # GPS2: the emulator's GPS_RAW_INT is the autopilot's own GNSS, the bridge's initial position
+        "1",
+        "--send-while-gnss",
+        "yes",
     )
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out, err = OutputReader(proc.stdout), OutputReader(proc.stderr)
@@ -265,8 +272,10 @@ def test_cli_bridge_sends_heartbeats_and_gps_input_and_exits_0(osborne):
     [
         (["--init=-21.9,140.6,400"], "--init"),  # three numbers instead of four; "=" as argparse needs for "-"
         (["--signing-key", "no/such/key.bin"], "no/such/key.bin"),
+        (["--connect", "udpin:127.0.0.1:notaport"], "port 'notaport' is not a number"),
+        (["--connect", "telnet://x"], "expected udpin:HOST:PORT"),
     ],
-    ids=["bad-init", "unreadable-signing-key"],
+    ids=["bad-init", "unreadable-signing-key", "bad-port", "bad-url"],
 )
 def test_cli_bridge_bad_option_is_one_line_and_exit_2(extra, expected, tmp_path):
     port = free_udp_port()
@@ -276,3 +285,39 @@ def test_cli_bridge_bad_option_is_one_line_and_exit_2(extra, expected, tmp_path)
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("magnav-ins: error:") and expected in lines[0], res.stderr
     assert "Traceback" not in res.stderr and res.stdout == ""
+
+
+def test_cli_bridge_sigterm_stops_cleanly_with_its_summary(osborne, tmp_path):
+    """A service manager stops the bridge with SIGTERM: it closes the link, prints its summary, writes the summary
+    JSON and exits 0 within a few seconds (it used to die at once with status 143)."""
+    import json
+    import signal
+
+    flight = flight_over_map(
+        osborne, start=START, heading=0.0, speed_mps=0.0, duration_s=60.0, rate_hz=50.0, altitude_m=400.0, seed=19
+    )
+    port = free_udp_port()
+    summary = tmp_path / "summary.json"
+    cmd = _cli(
+        "bridge", "--connect", f"udpin:127.0.0.1:{port}", "--map", "builtin:osborne-magnetic", "--imu-rate", "50",
+        "--date", flight.date, "--gps-id", "1", "--summary-json", str(summary),
+    )  # fmt: skip
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out, err = OutputReader(proc.stdout), OutputReader(proc.stderr)
+    ap = MavLink(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    try:
+        assert err.wait_for(r"bridge on udpin", 240.0) is not None, err.text()
+        with AutopilotEmulator(ap, flight.truth, flight.imu, flight.mag_b_nt):
+            assert err.wait_for(r"magnav: aligning", 20.0) is not None, err.text()
+            t0 = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            rc = proc.wait(timeout=10.0)
+            stopped_in = time.monotonic() - t0
+    finally:
+        stop_process(proc)
+        ap.close()
+    assert rc == 0 and stopped_in < 10.0, (rc, stopped_in, err.text()[-500:])
+    assert "stopped by SIGTERM" in err.text()
+    assert sum(line.startswith("bridge stopped:") for line in out.text().splitlines()) == 1, out.text()
+    doc = json.loads(summary.read_text())
+    assert doc["stopped_by"] == "SIGTERM" and doc["imu_samples"] > 0 and doc["state"] == "aligning"

@@ -215,7 +215,7 @@ def test_tlog_replay_issues_fixes_and_beats_free_inertial(sim, capsys):
     assert s["init"] == "--init" and s["map_covers_start"] is True
     traj = _read_traj(out)
     assert list(traj) == ["t", "lat_deg", "lon_deg", "h_m", "vn", "ve", "vd", "roll_deg", "pitch_deg", "yaw_deg",
-                          "sigma_n_m", "sigma_e_m"]  # fmt: skip
+                          "sigma_n_m", "sigma_e_m", "hpl_m"]  # fmt: skip
     err = _truth_error(sim, traj)
     assert err[0] == pytest.approx(68.0, abs=1.0)  # the --init offset
     # the summary's error against the log's GNSS is the error against the truth (GNSS = truth to 1e-7 deg)

@@ -70,3 +70,21 @@ def test_aggregate_hand_computed():
     assert a["fix_error_bins"]["3_to_10m"] == pytest.approx(1 / 3)
     assert a["fix_error_bins"]["ge_20m"] == pytest.approx(1 / 3)
     assert a["matcher"] == "ml" and a["fusion"] == "ukf"
+
+
+def test_hpl_statistics_and_fix_nees_hand_computed():
+    e = np.array([1.0, 5.0, 3.0, np.inf, 2.0])
+    h = np.array([2.0, 4.0, 3.0, 10.0, np.nan])
+    med, exc = M.hpl_statistics(e, h)
+    # HPL finite on 4 samples (median of 2, 4, 3, 10 = 3.5); exceeded by 5 > 4 and by the blown-up inf: 2 of 4
+    assert med == pytest.approx(3.5) and exc == pytest.approx(0.5)
+    assert M.hpl_statistics(e, np.full(5, np.nan)) == (None, None)
+    runs = [
+        M.RunMetrics(e=np.array([1.0, 2.0]), nees=np.array([2.0, 2.0]), hpl_m=np.array([3.0, 1.0]),
+                     fix_nees=np.array([1.0, 3.0])),
+        M.RunMetrics(e=np.array([1.0, 2.0]), nees=np.array([2.0, 2.0]), fix_nees=np.array([5.0])),
+    ]  # fmt: skip
+    m = M.aggregate(runs, "ml", "ukf")
+    # the second run has no protection level: only the first one's two samples count
+    assert m["hpl_median_m"] == pytest.approx(2.0) and m["hpl_exceedance"] == pytest.approx(0.5)
+    assert m["fix_nees_mean"] == pytest.approx(3.0)

@@ -29,7 +29,12 @@ DESIGN_KEYS = {
     "availability",
     "nees_mean",
 }
-EXTRA_KEYS = {"fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons"}
+EXTRA_KEYS = {
+    "fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons", "fix_nees_mean", "hpl_median_m",
+    "hpl_exceedance", "rms_after_first_fix_m",
+}  # fmt: skip
+#: the stand-in's protection level: sqrt(2 ln 10) sigma, exceeded by a circular Gaussian error 10 % of the time
+HPL_K10 = float(np.sqrt(2.0 * np.log(10.0)))
 
 
 @dataclass(frozen=True)
@@ -38,6 +43,7 @@ class StandInModel:
     n: int = 200
     sigma_aided_m: float = 5.0
     fail_at_run: int = -1
+    availability: float = 0.8
 
     def estimator_names(self) -> tuple[str, ...]:
         return ("aided", "free_inertial")
@@ -61,7 +67,12 @@ class StandInModel:
         al, ao = offset(an, ae)
         cov = np.broadcast_to(np.diag([s**2, s**2]), (self.n, 2, 2)).copy()
         fix_t = t[::10]
-        avail = rng.random(len(fix_t)) < 0.8
+        avail = rng.random(len(fix_t)) < self.availability
+        # two kinds of "no fix", with numbers in them that must not split the count
+        reasons = tuple(
+            "" if ok else (f"flat map: variability {0.01 * k:.2f} < 0.3" if k % 2 else f"ambiguous peak: ratio 1.{k}")
+            for k, ok in enumerate(avail)
+        )
         fn, fe = rng.normal(0, 2.0, len(fix_t)), rng.normal(0, 2.0, len(fix_t))
         fdlat, fdlon = meters_to_latlon(fn, fe, lat[::10])
         fix_lat = np.where(avail, lat[::10] + fdlat, np.nan)
@@ -72,7 +83,21 @@ class StandInModel:
             lat,
             lon,
             (
-                EstimatorOutput("aided", "ml", "ukf", al, ao, cov, fix_t, fix_lat, fix_lon, fix_cov, avail),
+                EstimatorOutput(
+                    "aided",
+                    "ml",
+                    "ukf",
+                    al,
+                    ao,
+                    cov,
+                    fix_t,
+                    fix_lat,
+                    fix_lon,
+                    fix_cov,
+                    avail,
+                    reasons,
+                    hpl_m=np.full(self.n, HPL_K10 * s),
+                ),  # fmt: skip
                 EstimatorOutput("free_inertial", None, "free_inertial", fl, fo),
             ),
         )
@@ -86,7 +111,8 @@ def test_metrics_json_keys_and_values(tmp_path):
     doc = runner.run_study(StandInModel(), runs=4, seed=7, out_dir=tmp_path)
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
     assert _strip(on_disk) == _strip(doc)
-    assert set(on_disk) == {"name", "estimators", "free_inertial", "runs", "seed", "wall_s"}
+    assert set(on_disk) == {"name", "estimators", "free_inertial", "runs", "seed", "wall_s", "warnings"}
+    assert on_disk["warnings"] == []
     assert on_disk["runs"] == 4 and on_disk["seed"] == 7
     assert set(on_disk["estimators"]) == {"aided"}
     aided = on_disk["estimators"]["aided"]
@@ -103,11 +129,37 @@ def test_metrics_json_keys_and_values(tmp_path):
     # availability ~ 0.8 by construction; fix errors Rayleigh(sigma=2): P(e < 3) = 1 - exp(-9/8) = 0.675
     assert aided["availability"] == pytest.approx(0.8, abs=0.1)
     assert aided["fix_within_3m_fraction"] == pytest.approx(1 - np.exp(-9 / 8), abs=0.1)
+    # fix errors N(0, 2^2) per axis with covariance diag(4, 4): fix NEES 2; HPL exceeded at 10 % of the samples
+    assert aided["fix_nees_mean"] == pytest.approx(2.0, rel=0.25)
+    assert aided["hpl_median_m"] == pytest.approx(HPL_K10 * 5.0) and aided["hpl_exceedance"] == pytest.approx(
+        0.1, abs=0.03
+    )
+    assert on_disk["free_inertial"]["hpl_median_m"] is None and on_disk["free_inertial"]["hpl_exceedance"] is None
     # a ramp drifts without bound: the baseline "diverges" in every run
     assert on_disk["free_inertial"]["divergence_rate"] == 1.0
     for f in ("runs.nc", "report.md", "track.png", "error_vs_time.png", "error_cdf.png", "free_inertial.png"):
         assert (tmp_path / f).stat().st_size > 0, f
     assert not list(tmp_path.glob(".*part"))
+
+
+def test_no_fix_reasons_counted_and_warned(tmp_path):
+    doc = runner.run_study(StandInModel(), runs=3, seed=2)
+    m = doc["estimators"]["aided"]
+    reasons = m["no_fix_reasons"]
+    # every "no fix" is counted once, under its reason without the numbers
+    assert set(reasons) <= {"flat map", "ambiguous peak"}
+    assert sum(reasons.values()) == m["fix_attempts"] - m["fixes_issued"] > 0
+    assert doc["warnings"] == []
+    # no fix at all: the study says so, with the reasons, in metrics.json and report.md
+    doc = runner.run_study(StandInModel(availability=0.0), runs=2, seed=2, out_dir=tmp_path, plots=False)
+    m = doc["estimators"]["aided"]
+    assert m["fixes_issued"] == 0 and m["availability"] == 0.0
+    assert sum(m["no_fix_reasons"].values()) == m["fix_attempts"] == 40
+    [line] = doc["warnings"]
+    assert f"0 of {m['fix_attempts']} fix attempts gave a fix" in line and "flat map x" in line
+    assert "ambiguous peak x" in line
+    assert line in (tmp_path / "report.md").read_text()
+    assert json.loads((tmp_path / "metrics.json").read_text())["warnings"] == [line]
 
 
 def test_seeds_independent_of_jobs():
@@ -149,6 +201,9 @@ def test_runs_nc_round_trip(tmp_path):
     doc = json.loads((tmp_path / "metrics.json").read_text())
     e = np.hypot(ds["err_north_m"].values[:, 0].astype(float), ds["err_east_m"].values[:, 0].astype(float))
     assert np.sqrt(np.mean(e**2)) == pytest.approx(doc["estimators"]["aided"]["rms_horizontal_m"], rel=1e-5)
+    hpl = ds["hpl_m"].values[:, 0].astype(float)
+    assert ds["hpl_m"].attrs["units"] == "m" and np.isnan(ds["hpl_m"].values[:, 1]).all()
+    assert np.mean(e > hpl) == pytest.approx(doc["estimators"]["aided"]["hpl_exceedance"], abs=1e-9)
 
 
 def test_plot_error_leaves_no_outputs(tmp_path, monkeypatch):

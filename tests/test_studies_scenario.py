@@ -224,3 +224,93 @@ def test_matcher_is_still_required_by_an_aided_fuser_with_a_map(tmp_path):
         _write(tmp_path, text.replace('fusion = { kind = "ukf" }', 'fusion = { kind = "free_inertial" }', 1))
     )
     assert sc.estimators[0].matcher is None and sc.estimators[1].matcher_kind == "pmht"
+
+
+# ---------------------------------------------------------------------------------- ranges at the edge (issue 18)
+@pytest.mark.parametrize(
+    ("old", "new", "key", "match"),
+    [
+        ("rate_hz = 50.0", "rate_hz = 1e9", "imu.rate_hz", r"out of range; expected \[1, 2000\]"),
+        ("rate_hz = 50.0", "rate_hz = 0.001", "imu.rate_hz", r"out of range; expected \[1, 2000\]"),
+        ("speed_mps = 22.0", "speed_mps = 0.0", "trajectory.speed_mps", "positive"),
+        ("speed_mps = 22.0", "speed_mps = 1e5", "trajectory.speed_mps", r"\(0, 3000\]"),
+        ("altitude_m = 100.0", "altitude_m = 1e7", "trajectory.altitude_m", r"\[-11000, 100000\]"),
+        ("duration_s = 60.0", "duration_s = 1e12", "trajectory.duration_s", "out of range"),
+        ("runs = 2", "runs = 10000000", "runs", r"\[1, 100000\]"),
+        ("interval_s = 10.0", "interval_s = 0.001", "sensor.interval_s", "shorter than one IMU period"),
+        ("sigma = 1.0", "sigma = 5000.0", "sensor.sigma", "implausible for a gravimeter"),
+        ("window = 1", "window = 0", "estimator[0].window", ">= 1"),
+    ],
+)
+def test_out_of_range_values_name_the_key(tmp_path, old, new, key, match):
+    text = GOOD.replace('fusion = { kind = "ukf" }', 'fusion = { kind = "ukf" }\nwindow = 1', 1).replace(old, new, 1)
+    assert text != GOOD
+    with pytest.raises(ConfigError, match=match) as ei:
+        load_scenario(_write(tmp_path, text))
+    assert f"'{key}'" in str(ei.value) and "s.toml line " in str(ei.value)
+
+
+def test_samples_per_run_limit_names_rate_and_duration(tmp_path):
+    # 3 deg of longitude at 22 m/s is about 3.4 h: at 2000 Hz that is 2.4e7 samples, above the 2e7 limit
+    text = GOOD.replace("end = [-37.9, 144.6]", "end = [-37.9, 148.0]").replace("duration_s = 60.0\n", "")
+    with pytest.raises(ConfigError, match=r"'imu\.rate_hz'.*IMU samples per run.*duration_s"):
+        load_scenario(_write(tmp_path, text.replace("rate_hz = 50.0", "rate_hz = 2000.0")))
+    assert load_scenario(_write(tmp_path, text)).imu.rate_hz == 50.0  # 6e5 samples: fine
+
+
+def test_attitude_sigma_range(tmp_path):
+    text = GOOD.replace("[map]", "[init]\nattitude_sigma_deg = [0.1, 0.1, 45.0]\n\n[map]")
+    with pytest.raises(ConfigError, match=r"'init\.attitude_sigma_deg'.*\[0, 30\]"):
+        load_scenario(_write(tmp_path, text))
+
+
+# ---------------------------------------------------------------------------------- the documented schema (issue 18)
+def _accepted_keys(data: dict, table: str) -> set[str]:
+    """The keys the validator accepts in ``table`` of ``data``: read from its unknown-key error."""
+    import copy
+
+    from magnav_ins.studies.scenario import scenario_from_dict
+
+    d = copy.deepcopy(data)
+    target = d if table == "" else (d["estimator"][0] if table == "estimator" else d[table])
+    target["zz_not_a_key"] = 1
+    with pytest.raises(ConfigError, match="unknown key") as ei:
+        scenario_from_dict(d)
+    m = re.search(r"expected one of:? \[?([^\]\)]*)", str(ei.value))
+    assert m, str(ei.value)
+    return {k.strip(" '\"") for k in m.group(1).split(",")}
+
+
+def test_schema_documents_every_accepted_key():
+    """SCHEMA (and so docs/scenarios.md) lists exactly the keys the validator accepts, per table and trajectory
+    kind. A key added to a validator needs its ScenarioKey line in studies/scenario.py (then regenerate the docs)."""
+    import tomllib
+
+    from magnav_ins.studies.scenario import SCHEMA, TRAJECTORY_KINDS
+
+    data = tomllib.loads(GOOD)
+    for table in ("", "imu", "map", "sensor", "estimator"):
+        documented = {k.name for k in SCHEMA if k.table == table}
+        assert _accepted_keys(data, table) == documented, f"[{table or 'top level'}]"
+    data["init"] = {}
+    assert _accepted_keys(data, "init") == {k.name for k in SCHEMA if k.table == "init"}
+    for kind in TRAJECTORY_KINDS:
+        data["trajectory"] = {"kind": kind}
+        documented = {k.name for k in SCHEMA if k.table == "trajectory" and (not k.kinds or kind in k.kinds)}
+        assert _accepted_keys(data, "trajectory") == documented, f"[trajectory] kind = {kind!r}"
+
+
+def test_docs_scenarios_md_is_generated_from_the_schema():
+    from magnav_ins.studies.scenario_doc import schema_markdown
+
+    doc = Path(__file__).resolve().parents[1] / "docs" / "scenarios.md"
+    assert doc.read_text(encoding="utf-8") == schema_markdown(), (
+        "docs/scenarios.md is out of date: python -m magnav_ins.studies.scenario_doc > docs/scenarios.md"
+    )
+
+
+def test_docs_example_validates(tmp_path):
+    from magnav_ins.studies.scenario_doc import _EXAMPLE
+
+    sc = load_scenario(_write(tmp_path, _EXAMPLE))
+    assert sc.estimators[0].matcher_kind == "pmht" and sc.imu.rate_hz == 100.0

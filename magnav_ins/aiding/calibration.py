@@ -322,6 +322,8 @@ def check_readings(
             f"{source}: {len(m)} readings are too few for the {method} method "
             f"({N_PARAMETERS[method]} unknowns); need at least {need}"
         )
+    if field_ned_nt is not None:
+        _check_unit(m, float(np.linalg.norm(np.asarray(field_ned_nt, float))), source)
     spread = _principal_spread(m)
     level = method in LEVEL_METHODS
     if field_ned_nt is not None:
@@ -342,6 +344,35 @@ def check_readings(
             "ellipsoid; use --method modified-ellipsoid"
         )
     return m
+
+
+#: |readings| / |reference field| outside this range is a unit mistake, not distortion (hard-iron biases on vehicles
+#: are a fraction of the Earth's field, soft iron a few tens of percent)
+UNIT_RATIO_RANGE = (0.1, 10.0)
+#: nT per unit, for the unit a misread file probably has
+_UNITS_NT = {
+    "gauss (G)": 1e5,
+    "milligauss (mG)": 1e2,
+    "microtesla (uT)": 1e3,
+    "tesla (T)": 1e9,
+    "ArduPilot's mG x 1000": 0.1,
+}
+
+
+def _check_unit(m: FloatArray, field_nt: float, source: str) -> None:
+    """Readings must be in nT: compare their median magnitude with the reference field's."""
+    med = float(np.median(np.linalg.norm(m, axis=1)))
+    if field_nt <= 0 or UNIT_RATIO_RANGE[0] * field_nt <= med <= UNIT_RATIO_RANGE[1] * field_nt:
+        return
+    scale = field_nt / med if med > 0 else math.inf
+    guess = min(_UNITS_NT, key=lambda u: abs(math.log(_UNITS_NT[u] / scale))) if med > 0 else None
+    hint = ""
+    if guess is not None and abs(math.log10(_UNITS_NT[guess] / scale)) < 0.5:
+        hint = f"; they look like {guess}: multiply by {_UNITS_NT[guess]:g} to get nT"
+    raise InputError(
+        f"{source}: median |m| is {med:.4g} but the reference field at the site is {field_nt:.0f} nT: the readings "
+        f"must be in nT{hint}"
+    )
 
 
 def _advice(method: str) -> str:

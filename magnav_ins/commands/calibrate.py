@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from ..aiding.calibration import METHODS, MagCalibration, calibrate
+from ..core.atomic import check_output_file
 from ..core.errors import ConfigError, InputError
 from ..core.units import DEG_TO_RAD
 
@@ -67,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
         date = _dt.date.fromisoformat(args.date)
     except ValueError as exc:
         raise ConfigError(f"--date {args.date!r}: expected YYYY-MM-DD") from exc
+    if args.out is not None:
+        check_output_file(args.out)
     m = read_readings(args.readings)
     lat, lon = args.lat * DEG_TO_RAD, args.lon * DEG_TO_RAD
     field = np.asarray(igrf_ned(lat, lon, args.alt, date.isoformat()), float).reshape(3)

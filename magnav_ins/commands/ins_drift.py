@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..core.atomic import atomic_path, write_text_atomic
+from ..core.atomic import atomic_path, check_output_dir, write_text_atomic
 from ..core.errors import ConfigError
 from ..core.units import DEG_TO_RAD
 
@@ -111,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(
             f"--duration x --rate-hz x --runs = {n_samples:.3g} IMU samples; reduce them (limit {MAX_SAMPLES:.0e}: about 170 bytes of memory per sample)"
         )
+    check_output_dir(args.out)  # before the Monte Carlo
     t0 = time.perf_counter()
     res = run_drift(grade, cfg)
     wall = time.perf_counter() - t0

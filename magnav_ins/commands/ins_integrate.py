@@ -26,7 +26,7 @@ from typing import TextIO
 import numpy as np
 import pandas as pd
 
-from ..core.atomic import atomic_path
+from ..core.atomic import atomic_path, check_output_file
 from ..core.errors import InputError, where
 from ..core.frames import euler_from_q_nb, q_nb_from_euler
 from ..core.types import ImuBatch, NavState, NavTrajectory
@@ -68,6 +68,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="hold the ellipsoidal height at M metres (the free vertical channel is unstable over hours)",
     )
     p.add_argument(
+        "--allow-implausible",
+        action="store_true",
+        help="integrate rates or specific forces outside any IMU's range (refused by default: a unit mistake)",
+    )
+    p.add_argument(
         "--sample-type",
         default="mean",
         choices=SAMPLE_TYPES,
@@ -84,6 +89,8 @@ def read_init(path: Path) -> NavState:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise InputError(f"{path}: cannot read the initial state ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not a text file (byte {exc.start} is not UTF-8); expected JSON") from None
     try:
         d = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -161,6 +168,31 @@ def _chunks(path: Path, chunk_rows: int):
         raise InputError(f"{path}: malformed CSV near data row {row0}+ ({exc})") from None
 
 
+def _check_plausible(path: Path, row0: int, gyro: np.ndarray, accel: np.ndarray, first: bool) -> None:
+    """Refuse rates and specific forces no IMU measures (:mod:`magnav_ins.core.plausibility`), naming the row and
+    column; on the first chunk also a median |specific force| that says the accelerometers are in g."""
+    from ..core import plausibility as pl
+
+    override = "; --allow-implausible integrates it anyway"
+    for name, data, limit, unit in (
+        ("gyro", np.abs(gyro), pl.MAX_GYRO_RAD_S, "rad/s (4000 deg/s, the largest gyro full scale): rates in rad/s?"),
+        ("accel", np.abs(accel), pl.MAX_ACCEL_MPS2, "m/s^2 (100 g): specific force in m/s^2?"),
+    ):
+        bad = np.argwhere(data > limit)
+        if len(bad):
+            k, axis = (int(x) for x in bad[0])
+            col = f"{name}_{'xyz'[axis]}"
+            raise InputError(
+                f"{where(path, row=row0 + k, key=col)}{data[k, axis]:.6g} is above {limit:g} {unit}{override}"
+            )
+    f = np.linalg.norm(accel, axis=1)
+    if first and len(f) >= 10 and np.median(f) < pl.MIN_MEDIAN_ACCEL_MPS2:
+        raise InputError(
+            f"{path} rows {row0}-{row0 + len(f) - 1}: median |specific force| {np.median(f):.3g} m/s^2; in g? expected "
+            f"m/s^2 (about 9.8 unless in free fall){override}"
+        )
+
+
 def _write(fh: TextIO, traj: NavTrajectory) -> None:
     roll, pitch, yaw = euler_from_q_nb(traj.q_nb)
     table = np.column_stack(
@@ -177,13 +209,17 @@ def integrate_file(
     max_gap: float | None = None,
     altitude_hold: float | None = None,
     chunk_rows: int = 50_000,
+    allow_implausible: bool = False,
     sample_type: str = "mean",
 ) -> int:
     """Mechanise ``imu_path`` from ``init_path`` into ``out_path`` (see the module docstring). Returns the number of
     trajectory rows written. Raises :class:`InputError` naming the file, row and column on bad input."""
     imu_path, init_path, out_path = Path(imu_path), Path(init_path), Path(out_path)
+    check_output_file(out_path)
     if max_gap is not None and not (math.isfinite(max_gap) and max_gap > 0):
         raise InputError(f"--max-gap: expected a positive number of seconds, got {max_gap}")
+    if altitude_hold is not None and not (math.isfinite(altitude_hold) and -11000.0 <= altitude_hold <= 1e5):
+        raise InputError(f"--altitude-hold: expected an ellipsoidal height in [-11000, 100000] m, got {altitude_hold}")
     check_sample_type(sample_type)
     init = read_init(init_path)
     _check_header(imu_path)
@@ -222,6 +258,8 @@ def integrate_file(
                     )
             raw_last = (float(t[-1]), gyro[-1].copy(), accel[-1].copy())
             gyro, accel = interval_means(t, gyro, accel, sample_type, previous=previous)
+            if not allow_implausible:  # on the rates (rad/s, m/s^2) whatever --sample-type
+                _check_plausible(imu_path, row0, gyro, accel, stepper is None)
             previous = raw_last
             if stepper is None:
                 if abs(t[0] - init.t) > INIT_TIME_TOLERANCE_S:
@@ -258,6 +296,7 @@ def run(args: argparse.Namespace) -> int:
         max_gap=args.max_gap,
         altitude_hold=args.altitude_hold,
         chunk_rows=args.chunk_rows,
+        allow_implausible=args.allow_implausible,
         sample_type=args.sample_type,
     )
     print(f"wrote {rows} states to {args.out}")

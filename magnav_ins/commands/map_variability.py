@@ -14,9 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from ..core.atomic import atomic_path
+from ..core.atomic import atomic_path, check_output_file
 from ..core.errors import InputError
 from ..core.units import RAD_TO_DEG
+from .map_options import load, map_options
 
 
 def add_parser(map_sub: argparse._SubParsersAction) -> None:
@@ -26,10 +27,8 @@ def add_parser(map_sub: argparse._SubParsersAction) -> None:
         help="feature variability (Wang eq. 14), gradient RMS and Cramer-Rao bounds of a map -> NetCDF + PNG",
         description=__doc__,
     )
-    from .maps import _map_options  # lazy: commands/maps.py imports this module
-
     p.add_argument("map", metavar="MAP", help="NetCDF grid, builtin:NAME or survey CSV(.xz) with --spacing")
-    _map_options(p, survey=True)
+    map_options(p, survey=True)
     p.add_argument("--window", type=float, required=True, metavar="M", help="square window width in metres")
     p.add_argument("--out", required=True, metavar="FILE", help="output NetCDF (a PNG is written beside it)")
     p.add_argument(
@@ -145,11 +144,11 @@ def write_png(path: Path, fmap: Any, rasters: dict[str, tuple[np.ndarray, str, s
 
 
 def run(args: argparse.Namespace) -> int:
-    from .maps import _load  # the map group's loader: same options and errors as 'map info'
-
     if not np.isfinite(args.window) or args.window <= 0:
         raise InputError(f"--window: expected a positive width in metres, got {args.window!r}")
-    fmap = _load(args, args.map)
+    check_output_file(args.out)
+    check_output_file(Path(args.out).with_suffix(".png"), option="--out (its PNG)")
+    fmap = load(args, args.map)
     if not hasattr(fmap, "axes"):
         raise InputError(f"{args.map}: variability rasters need a gridded map, got {type(fmap).__name__}")
     rasters = compute(fmap, args.window, args.sigma)

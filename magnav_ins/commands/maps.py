@@ -4,9 +4,14 @@
     magnav-ins map grid SURVEY --spacing M [--exclude-lines ID,ID,...] [--exclude-tie-lines] [--line-type T]
                    [--exclude-line-type T] [--check-lines T] [--column OURS=THEIRS ...] [--geoid-m N] [--out MAP.nc]
     magnav-ins map sample MAP --points CSV --out CSV [--method bilinear|bicubic]
+    magnav-ins map combine FINE COARSE [--margin-m M] [--blend-m M] [--no-level] --out MAP.nc
+    magnav-ins map convert FILE [--unit U] [--kind K] [--altitude-m M] [--datum D] [--crs CRS] [--variable V]
+                   [--reproject] --out MAP.nc
 
-``MAP`` is a NetCDF grid, ``builtin:NAME`` or a survey CSV(.xz) (then ``--spacing`` grids it on load). Files that
-lack kind/unit/datum/altitude metadata are refused; ``--kind``, ``--altitude-m``, ``--datum`` supply them explicitly.
+``MAP`` is a grid file (this project's NetCDF, or as downloaded: GeoTIFF, ER Mapper ``.ers``, Geosoft GXF / GRD, GMT /
+COARDS / CF NetCDF; :mod:`magnav_ins.maps.formats`), ``builtin:NAME`` or a survey CSV(.xz) (then ``--spacing`` grids
+it on load). Files that lack kind/unit/datum/altitude/CRS metadata are refused in one message naming what is
+missing; ``--kind``, ``--unit``, ``--altitude-m``, ``--datum``, ``--crs``, ``--variable`` supply them explicitly.
 Survey CSVs with other column names are read through ``--column OURS=THEIRS`` (repeatable); orthometric heights are
 made ellipsoidal with the shipped EIGEN-6C4 geoid unless ``--geoid-m`` gives the undulation.
 Outputs are written atomically; user mistakes give a one-line error and exit status 2.
@@ -21,11 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from ..core.atomic import atomic_path
+from ..core.atomic import atomic_path, check_output_file
 from ..core.errors import InputError
 from ..core.types import FieldKind
 from ..core.units import DEG_TO_RAD, RAD_TO_DEG
 from . import map_variability
+from .map_options import load, log_to_stderr, map_options, survey_options
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -35,78 +41,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     _add_info(map_sub)
     _add_grid(map_sub)
     _add_sample(map_sub)
+    _add_convert(map_sub)
+    _add_combine(map_sub)
     # --- sub-commands defined in other modules register here (one line each) ---
     map_variability.add_parser(map_sub)
-
-
-def _map_options(p: argparse.ArgumentParser, *, survey: bool) -> None:
-    kinds = [k.value for k in FieldKind]
-    p.add_argument("--kind", choices=kinds, default=None, help="what the map measures, if the file does not say")
-    p.add_argument("--altitude-m", type=float, default=None, help="ellipsoidal height (m) if the file does not say")
-    p.add_argument("--datum", default=None, help="geodetic datum if the file does not say (only WGS84 is supported)")
-    if survey:
-        _survey_options(p)
-    p.add_argument("--spacing", type=float, default=None, metavar="M", help="grid spacing (m) for a survey CSV")
-
-
-def _survey_options(p: argparse.ArgumentParser) -> None:
-    """Options of every command that reads a survey CSV: column mapping, geoid, line selection by type."""
-    p.add_argument(
-        "--geoid-m",
-        type=float,
-        default=None,
-        help="geoid undulation N (m) turning a survey's height_orthometric_m into ellipsoidal height H + N "
-        "(default: the shipped EIGEN-6C4 geoid, 10')",
-    )
-    p.add_argument(
-        "--column",
-        action="append",
-        default=[],
-        metavar="OURS=THEIRS",
-        help="survey column mapping, repeatable: e.g. --column height_ellipsoidal_m=height_ell_m --column "
-        "line=line_number",
-    )
-    p.add_argument("--line-type", default=None, metavar="TYPE", help="use only the lines of this line_type (e.g. LINE)")
-    p.add_argument(
-        "--exclude-line-type", default=None, metavar="TYPE", help="leave out the lines of this line_type (e.g. TIE)"
-    )
-
-
-def _log_to_stderr(args: argparse.Namespace) -> None:
-    """Show the map readers' INFO lines (e.g. which geoid made a survey's heights ellipsoidal) unless --quiet."""
-    import logging
-
-    lg = logging.getLogger("magnav_ins.maps")
-    if getattr(args, "quiet", False) or lg.handlers:
-        return
-    h = logging.StreamHandler()
-    h.setFormatter(logging.Formatter("magnav-ins: %(message)s"))
-    lg.addHandler(h)
-    lg.setLevel(logging.INFO)
-
-
-def _load(args: argparse.Namespace, spec: str) -> Any:
-    from ..maps.io import load_map, parse_column_mapping
-
-    _log_to_stderr(args)
-    return load_map(
-        spec,
-        grid_spacing_m=args.spacing,
-        kind=args.kind,
-        altitude_m=args.altitude_m,
-        datum=args.datum,
-        geoid_undulation_m=getattr(args, "geoid_m", None),
-        columns=parse_column_mapping(getattr(args, "column", [])) or None,
-        line_type=getattr(args, "line_type", None),
-        exclude_line_type=getattr(args, "exclude_line_type", None),
-    )
 
 
 # ------------------------------------------------------------------------------------------------ info
 def _add_info(map_sub: argparse._SubParsersAction) -> None:
     p = map_sub.add_parser("info", help="describe a map: kind, unit, frame, extent, spacing, altitude, value range")
     p.add_argument("map", metavar="MAP", help="NetCDF grid, builtin:NAME or survey CSV(.xz) with --spacing")
-    _map_options(p, survey=True)
+    map_options(p, survey=True)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     p.set_defaults(handler=run_info)
 
@@ -117,8 +62,10 @@ def map_summary(fmap: Any) -> dict[str, Any]:
     v = np.asarray(fmap.values, dtype=float)
     alt = np.asarray(fmap.altitude_m, dtype=float)
     dn, de = fmap.spacing_m
+    meta = fmap.metadata or {}
     out: dict[str, Any] = {
         "name": fmap.name,
+        "format": meta.get("format", "magnav_ins NetCDF" if "made_by" in meta or "gridder" in meta else "GridMap"),
         "kind": fmap.kind.value,
         "unit": fmap.unit,
         "frame": fmap.frame,
@@ -133,7 +80,27 @@ def map_summary(fmap: Any) -> dict[str, Any]:
         "value_range": [float(np.nanmin(v)), float(np.nanmax(v))],
         "value_rms": float(np.sqrt(np.nanmean(v**2))),
         "coverage": float(np.mean(np.isfinite(v))),
+        "no_data_fraction": float(np.mean(~np.isfinite(v))),
     }
+    if fmap.frame == "projected":
+        out["crs_name"] = fmap.projection.name
+        out["used_as"] = f"in its own CRS ({fmap.projection.name}) through pyproj: {fmap.projection.transform}"
+        w, e, s_, n = fmap.region
+        out["northing_m"] = [s_, n]
+        out["easting_m"] = [w, e]
+    elif "reprojected_from" in meta:
+        out["used_as"] = "reprojected onto a WGS-84 latitude/longitude grid"
+    if fmap.has_error_layer:
+        es = np.asarray(fmap.error_sigma, dtype=float)
+        out["error_layer"] = {
+            "sigma_median": float(np.median(es)),
+            "sigma_p90": float(np.percentile(es, 90)),
+            "sigma_range": [float(es.min()), float(es.max())],
+            "correlation_m": float(fmap.error_correlation_m),
+            "source": fmap.error_source,
+        }
+    else:
+        out["error_layer"] = None
     if fmap.frame == "local":
         out["origin_deg_m"] = [fmap.origin[0] * RAD_TO_DEG, fmap.origin[1] * RAD_TO_DEG, fmap.origin[2]]
         w, e, s, n = fmap.region
@@ -145,7 +112,7 @@ def map_summary(fmap: Any) -> dict[str, Any]:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    fmap = _load(args, args.map)
+    fmap = load(args, args.map)
     s = map_summary(fmap)
     if args.json:
         print(json.dumps(s, default=str))
@@ -159,19 +126,36 @@ def run_info(args: argparse.Namespace) -> int:
             s["frame"]
             + (f" (origin {s['origin_deg_m'][0]:.6f}, {s['origin_deg_m'][1]:.6f} deg)" if "origin_deg_m" in s else ""),
         ),
-        ("datum / crs", f"{s['datum']} / {s['crs'] or '-'}"),
+        ("format", s["format"]),
+        ("datum / crs", f"{s['datum']} / {s.get('crs_name') or s['crs'] or '-'}"),
         ("shape (ny, nx)", f"{s['shape'][0]} x {s['shape'][1]}"),
         ("spacing", f"{s['spacing_m'][0]:.1f} m north, {s['spacing_m'][1]:.1f} m east"),
         ("latitude", f"{s['lat_deg'][0]:.5f} .. {s['lat_deg'][1]:.5f} deg"),
         ("longitude", f"{s['lon_deg'][0]:.5f} .. {s['lon_deg'][1]:.5f} deg"),
         ("altitude", f"{alt:.1f} m" if not s["draped"] else f"draped {alt[0]:.1f} .. {alt[1]:.1f} m (ellipsoidal)"),
         ("values", f"{s['value_range'][0]:.3f} .. {s['value_range'][1]:.3f} {s['unit']} (rms {s['value_rms']:.3f})"),
-        ("coverage", f"{100 * s['coverage']:.1f} % of nodes"),
+        ("no data", f"{100 * s['no_data_fraction']:.1f} % of nodes"),
+        ("error layer", _error_text(s)),
     ]
+    if "used_as" in s:
+        rows.insert(4, ("used", s["used_as"]))
+    if "northing_m" in s and s["frame"] == "projected":
+        rows.insert(5, ("northing / easting", f"{s['northing_m'][0]:.1f} .. {s['northing_m'][1]:.1f} m / "
+                        f"{s['easting_m'][0]:.1f} .. {s['easting_m'][1]:.1f} m (projected)"))  # fmt: skip
     w = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"{k:<{w}}  {v}")
     return 0
+
+
+def _error_text(s: dict[str, Any]) -> str:
+    e = s.get("error_layer")
+    if not e:
+        return "no error layer (matchers use their stated default)"
+    return (
+        f"1-sigma median {e['sigma_median']:.3g}, 90 % {e['sigma_p90']:.3g}, range {e['sigma_range'][0]:.3g} .. "
+        f"{e['sigma_range'][1]:.3g} {s['unit']}; correlation length {e['correlation_m']:.0f} m; {e['source']}"
+    )
 
 
 # ------------------------------------------------------------------------------------------------ grid
@@ -189,7 +173,7 @@ def _add_grid(map_sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--method", choices=["auto", "bidirectional", "linear", "cubic"], default="auto")
     p.add_argument("--kind", choices=[k.value for k in FieldKind], default=None, help="kind of a 'value' column")
-    _survey_options(p)
+    survey_options(p)
     p.add_argument(
         "--check-lines",
         default=None,
@@ -198,6 +182,13 @@ def _add_grid(map_sub: argparse._SubParsersAction) -> None:
         "and print the misfit",
     )
     p.add_argument("--altitude-m", type=float, default=None, help="constant ellipsoidal height if no height column")
+    p.add_argument(
+        "--error-folds",
+        type=int,
+        default=5,
+        metavar="K",
+        help="folds of the block cross-validation that estimates the map's error layer (0: no layer; default 5)",
+    )
     p.add_argument("--float32", action="store_true", help="store values as float32 (half the size)")
     p.add_argument("--out", default=None, metavar="MAP.nc", help="output NetCDF (default: SURVEY name + .nc here)")
     p.add_argument("--quiet", action="store_true", help="print nothing")
@@ -220,10 +211,10 @@ def run_grid(args: argparse.Namespace) -> int:
     from ..maps.build import cross_lines, grid_survey, tie_line_misfit
     from ..maps.io import parse_column_mapping, read_survey, select_lines, write_map
 
-    _log_to_stderr(args)
+    log_to_stderr(args)
     exclude = _parse_ids(args.exclude_lines)
     src = Path(args.survey)
-    out = Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc")
+    out = check_output_file(Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc"))
     t0 = time.perf_counter()
     survey = read_survey(
         src,
@@ -246,7 +237,11 @@ def run_grid(args: argparse.Namespace) -> int:
         exclude = sorted(set(exclude) | set(ties))
     if check_ids:
         exclude = sorted(set(exclude) | (set(check_ids) & set(used.line_ids().tolist())))
-    fmap = grid_survey(used, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem)
+    if args.error_folds < 0 or args.error_folds == 1:
+        raise InputError(f"--error-folds: expected 0 (no error layer) or at least 2, got {args.error_folds}")
+    fmap = grid_survey(
+        used, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem, error_folds=args.error_folds
+    )
     fmap.metadata["source"] = src.name
     fmap.metadata["heights"] = survey.heights
     for key, val in (("line_type", args.line_type), ("excluded_line_type", args.exclude_line_type)):
@@ -256,6 +251,8 @@ def run_grid(args: argparse.Namespace) -> int:
     if check_ids:
         per = tie_line_misfit(fmap, survey, check_ids)
         misfit = _pooled_misfit(per)
+        if fmap.has_error_layer:
+            misfit["z_rms"] = normalised_misfit(fmap, survey.select(np.isin(survey.line, check_ids)))
         fmap.metadata["check_lines"] = {"line_type": args.check_lines, **misfit}
     write_map(fmap, out, dtype="float32" if args.float32 else "float64")
     if not args.quiet:
@@ -270,13 +267,24 @@ def run_grid(args: argparse.Namespace) -> int:
         ign = fmap.metadata.get("ignored_lines") or []
         if ign:
             print(f"cross lines not used by the line gridder: {','.join(map(str, ign))}")
+        print(f"error layer: {_error_text(map_summary(fmap))}")
         if misfit is not None:
             print(
                 f"{args.check_lines} lines ({len(check_ids)}) predicted by the map: {misfit['n']} readings, misfit "
                 f"(map - observed) RMS {misfit['rms']:.2f}, mean {misfit['mean']:.2f}, std {misfit['std']:.2f} "
                 f"{fmap.unit}; {misfit['n_off']} off the map"
+                + (f"; RMS of misfit / error-layer sigma {misfit['z_rms']:.2f}" if "z_rms" in misfit else "")
             )
     return 0
+
+
+def normalised_misfit(fmap: Any, survey: Any) -> float:
+    """RMS of (map - reading) / error-layer sigma over the readings of ``survey`` on the map (about 1 when the
+    layer is honest)."""
+    r = fmap.value(survey.lat, survey.lon) - survey.value
+    sig = fmap.error_sigma_at(survey.lat, survey.lon)
+    ok = np.isfinite(r) & np.isfinite(sig) & (sig > 0)
+    return float(np.sqrt(np.mean((r[ok] / sig[ok]) ** 2))) if ok.any() else float("nan")
 
 
 def _pooled_misfit(per: dict[int, dict]) -> dict[str, Any]:
@@ -297,6 +305,73 @@ def _pooled_misfit(per: dict[int, dict]) -> dict[str, Any]:
     }
 
 
+# ------------------------------------------------------------------------------------------------ convert
+def _add_convert(map_sub: argparse._SubParsersAction) -> None:
+    p = map_sub.add_parser(
+        "convert",
+        help="write any readable map (GeoTIFF, ER Mapper, GXF, GMT/COARDS/CF NetCDF, survey CSV) in magnav_ins's "
+        "NetCDF format",
+    )
+    p.add_argument("map", metavar="FILE", help="grid file, builtin:NAME or survey CSV(.xz) with --spacing")
+    map_options(p, survey=True)
+    p.add_argument("--float32", action="store_true", help="store values as float32 (half the size)")
+    p.add_argument("--out", required=True, metavar="MAP.nc", help="output NetCDF")
+    p.add_argument("--quiet", action="store_true", help="print nothing")
+    p.set_defaults(handler=run_convert)
+
+
+def run_convert(args: argparse.Namespace) -> int:
+    from ..maps.io import write_map
+
+    fmap = load(args, args.map)
+    out = Path(args.out)
+    if out.resolve() == Path(args.map).resolve():
+        raise InputError(f"--out {out}: would overwrite the input map")
+    write_map(fmap, out, dtype="float32" if args.float32 else "float64")
+    if not args.quiet:
+        s = map_summary(fmap)
+        print(
+            f"wrote {out}: {s['kind']} [{s['unit']}], {s['frame']} frame, {s['shape'][0]} x {s['shape'][1]} nodes, "
+            f"{100 * s['no_data_fraction']:.1f} % no data, error layer: {'yes' if s['error_layer'] else 'no'}"
+        )
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ combine
+def _add_combine(map_sub: argparse._SubParsersAction) -> None:
+    p = map_sub.add_parser(
+        "combine",
+        help="a fine map over a coarse one (blended edge, levelled, both error layers) -> NetCDF, as MagNav.jl's "
+        "map_combine",
+    )
+    p.add_argument("fine", metavar="FINE", help="the fine map (magnav_ins NetCDF or builtin:NAME; map convert first)")
+    p.add_argument("coarse", metavar="COARSE", help="the coarse (regional) map, same kind")
+    p.add_argument("--margin-m", type=float, default=None, help="widen the fine map's extent by this (default 10 %%)")
+    p.add_argument("--blend-m", type=float, default=None, help="width of the blended edge (default 5 node spacings)")
+    p.add_argument("--no-level", action="store_true", help="do not shift the coarse map onto the fine one's mean")
+    p.add_argument("--out", required=True, metavar="MAP.nc", help="output NetCDF")
+    p.add_argument("--quiet", action="store_true", help="print nothing")
+    p.set_defaults(handler=run_combine)
+
+
+def run_combine(args: argparse.Namespace) -> int:
+    from ..maps.combine import combine_maps
+    from ..maps.io import load_map, write_map
+
+    log_to_stderr(args)
+    fine, coarse = load_map(args.fine), load_map(args.coarse)
+    m = combine_maps(fine, coarse, margin_m=args.margin_m, blend_m=args.blend_m, level=not args.no_level)
+    write_map(m, args.out)
+    if not args.quiet:
+        lv = m.metadata.get("coarse_levelled_by")
+        print(
+            f"wrote {args.out}: {m.shape[0]} x {m.shape[1]} nodes, fine map on {100 * m.metadata['fine_fraction']:.0f} %"
+            + (f", coarse levelled by {lv:+.2f} {m.unit}" if lv is not None else "")
+            + f", error layer: {'yes' if m.has_error_layer else 'no (both maps need one)'}"
+        )
+    return 0
+
+
 # ------------------------------------------------------------------------------------------------ sample
 def _add_sample(map_sub: argparse._SubParsersAction) -> None:
     p = map_sub.add_parser("sample", help="map values at points (CSV lat_deg,lon_deg[,h_m]); NaN off the map")
@@ -304,13 +379,13 @@ def _add_sample(map_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--points", required=True, metavar="CSV", help="CSV with columns lat_deg, lon_deg[, h_m]")
     p.add_argument("--out", required=True, metavar="CSV", help="output CSV: the input columns + value")
     p.add_argument("--method", choices=["bilinear", "bicubic"], default="bilinear")
-    _map_options(p, survey=True)
+    map_options(p, survey=True)
     p.set_defaults(handler=run_sample)
 
 
 def read_points(path: str | Path) -> Any:
     """Read a points CSV (``lat_deg``, ``lon_deg``[, ``h_m``]) as a DataFrame, validating every row."""
-    from ..maps.io import _check_latlon, _numeric, read_csv_checked
+    from ..maps.survey import _check_latlon, _numeric, read_csv_checked
 
     src = str(path)
     if not Path(path).is_file():
@@ -330,7 +405,8 @@ def read_points(path: str | Path) -> Any:
 
 
 def run_sample(args: argparse.Namespace) -> int:
-    fmap = _load(args, args.map)
+    check_output_file(args.out)
+    fmap = load(args, args.map)
     df = read_points(args.points)
     lat = df["lat_deg"].to_numpy(dtype=float) * DEG_TO_RAD
     lon = df["lon_deg"].to_numpy(dtype=float) * DEG_TO_RAD

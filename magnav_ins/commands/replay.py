@@ -4,7 +4,7 @@ LOG is a PX4 ULog (``.ulg``), a MAVLink telemetry log (``.tlog``) or a CSV (``t,
 accel_y,accel_z[,mag_x,mag_y,mag_z]``: s, rad/s, m/s^2 specific force, nT, body FRD). The pipeline is the one the
 bridge builds (:func:`magnav_ins.mavlink.replay.make_online_pipeline`), fed sample by sample as the bridge feeds it.
 Writes the fused trajectory (``--out``: ``t,lat_deg,lon_deg,h_m,vn,ve,vd,roll_deg,pitch_deg,yaw_deg,sigma_n_m,
-sigma_e_m``) and prints a summary: samples, duration, fixes issued/accepted, the reasons of the "no fix"es and, when
+sigma_e_m,hpl_m``, the last the fuser's horizontal protection level at integrity risk 1e-3) and prints a summary: samples, duration, fixes issued/accepted, the reasons of the "no fix"es and, when
 the log holds GNSS, the horizontal error against it. A log far from the map still replays (every fix attempt is a
 "no fix": off the map).
 """
@@ -17,7 +17,7 @@ import json
 import math
 from pathlib import Path
 
-from ..core.atomic import write_text_atomic
+from ..core.atomic import check_output_file, write_text_atomic
 from ..core.errors import ConfigError
 
 
@@ -115,6 +115,9 @@ def run(args: argparse.Namespace) -> int:
     from ..mavlink.replay import read_log, replay, write_trajectory
 
     init = parse_init(args.init)
+    for option, path in (("--out", args.out), ("--summary-json", args.summary_json)):
+        if path is not None:
+            check_output_file(path, option)  # before the replay, not after it
     for name in ("init_sigma", "reading_sigma", "output_interval"):
         v = getattr(args, name)
         if not (math.isfinite(v) and v > 0):

@@ -25,8 +25,21 @@ class MapError(MagnavError, ValueError):
     """A map that cannot be used: missing unit/kind/datum metadata, empty or all-NaN grid, query off the map."""
 
 
+class OutputError(MagnavError):
+    """An output that cannot be written: a folder where a file is meant (or the reverse), a path under a file, a
+    read-only place. Raised before the work starts where possible (:mod:`magnav_ins.core.atomic`)."""
+
+
 class LinkError(MagnavError):
     """A MAVLink connection that cannot be opened or used."""
+
+
+def warn(message: str) -> None:
+    """Print a one-line warning on stderr (``magnav-ins: warning: ...``): something the user should know that does
+    not stop the command (a run without fixes, an implausible map under inspection)."""
+    import sys
+
+    print(f"magnav-ins: warning: {message}", file=sys.stderr)
 
 
 def where(file: object | None = None, row: int | None = None, key: str | None = None) -> str:

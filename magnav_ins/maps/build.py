@@ -29,17 +29,19 @@ average (:func:`crossover_differences`) - leaving 28.2 nT of scatter.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.errors import InputError, MapError
+from ..core.errors import InputError, MagnavError, MapError
 from ..core.frames import geodetic_to_ned
+from .error_layer import DEFAULT_FOLDS, ERROR_INFLATION, ErrorModel, cross_validate, nearest_distance
 from .grid import GridMap
-from .interp import bilinear
-from .io import Survey
+from .interp import bilinear, bilinear_scalar
+from .survey import Survey
 
 FloatArray = NDArray[np.float64]
 CROSS_LINE_TOLERANCE_RAD = np.deg2rad(20.0)
@@ -114,12 +116,22 @@ def grid_survey(
     method: str = "auto",
     max_gap_m: float | None = None,
     name: str = "",
+    error_folds: int = DEFAULT_FOLDS,
+    error_block_m: float | None = None,
+    error_seed: int = 0,
+    error_inflation: float = ERROR_INFLATION,
 ) -> GridMap:
     """Grid ``survey`` at ``spacing_m`` (m) in a local tangent-plane frame; returns a draped local :class:`GridMap`.
 
     ``exclude_lines``: line ids to leave out (an unknown id is an error). ``method``: ``"auto"`` (bidirectional when
     the survey has line ids, else linear), ``"bidirectional"``, ``"linear"`` or ``"cubic"``. ``max_gap_m`` (default
     ``max(3 * spacing, 100 m)``) bounds along-line gaps and the distance to data for the scattered gridders.
+
+    The map carries its error layer (:mod:`magnav_ins.maps.error_layer`): a block ``error_folds``-fold
+    cross-validation (blocks of ``error_block_m``, default about one line spacing; folds drawn from
+    ``error_seed``) re-grids the survey ``error_folds`` more times; ``error_folds=0`` gives a map without a layer.
+    ``error_inflation`` multiplies the cross-validated sigma (default
+    :data:`~magnav_ins.maps.error_layer.ERROR_INFLATION`, calibrated on Osborne's independent tie lines).
     """
     if not (np.isfinite(spacing_m) and spacing_m > 0):
         raise InputError(f"grid spacing must be a positive number of metres, got {spacing_m!r}")
@@ -162,6 +174,26 @@ def grid_survey(
     if not np.isfinite(vals).any():
         raise MapError(f"{src}: gridding produced no finite node (spacing {spacing_m} m too coarse for the data?)")
     alt = np.where(np.isfinite(alt), alt, np.nanmean(alt))
+    err = None
+    err_model = None
+    if error_folds:
+        err, err_model = _error_layer(
+            survey,
+            n,
+            e,
+            north,
+            east,
+            vals,
+            spacing_m,
+            method,
+            gap,
+            meta,
+            error_folds,
+            error_block_m,
+            error_seed,
+            error_inflation,
+        )
+        meta["error_model"] = err_model.as_metadata()
     return GridMap(
         north,
         east,
@@ -173,7 +205,94 @@ def grid_survey(
         crs="local tangent plane (NED) about origin, WGS84",
         name=name or (survey.source and survey.source.split("/")[-1]) or "survey",
         metadata=meta,
+        error_sigma=err,
+        error_correlation_m=None if err_model is None else err_model.correlation_m,
+        error_source="" if err_model is None else err_model.describe(),
     )
+
+
+def _error_layer(
+    survey: Survey,
+    n: FloatArray,
+    e: FloatArray,
+    north: FloatArray,
+    east: FloatArray,
+    vals: FloatArray,
+    spacing_m: float,
+    method: str,
+    gap: float,
+    meta: dict[str, object],
+    folds: int,
+    block_m: float | None,
+    seed: int,
+    inflation: float,
+) -> tuple[FloatArray, ErrorModel]:
+    """The error layer of the map ``vals`` gridded from ``survey`` (local ``n``, ``e`` m): block k-fold
+    cross-validation with the same gridder (:func:`magnav_ins.maps.error_layer.cross_validate`), the model evaluated
+    at every node's distance to the nearest reading used."""
+    used = np.ones(len(survey), dtype=bool)
+    if method == "bidirectional":
+        used = ~np.isin(survey.line, np.asarray(meta.get("ignored_lines", []), dtype=np.int64))  # type: ignore[arg-type]
+    sub = survey.select(used) if not used.all() else survey
+    coords = np.c_[n[used], e[used]]
+    nn, ee = np.meshgrid(north, east, indexing="ij")
+    nodes = np.c_[nn.ravel(), ee.ravel()]
+    finite = np.isfinite(vals.ravel())
+    node_d = np.full(nodes.shape[0], np.nan)
+    node_d[finite] = nearest_distance(coords, nodes[finite])
+    az = float(np.deg2rad(meta["line_azimuth_deg"])) if "line_azimuth_deg" in meta else None  # type: ignore[arg-type]
+    grad = gradient_magnitude(vals, spacing_m)
+    north0, east0 = float(north[0]), float(east[0])
+    g_read = bilinear_scalar(
+        np.ascontiguousarray(np.nan_to_num(grad, nan=np.nanmedian(grad))),
+        north0,
+        spacing_m,
+        east0,
+        spacing_m,
+        np.ascontiguousarray(coords[:, 0]),
+        np.ascontiguousarray(coords[:, 1]),
+        0.0,
+    )
+
+    def regrid(train: NDArray[np.bool_], test: NDArray[np.int64], fold_gap: float) -> FloatArray:
+        try:
+            m = grid_survey(sub.select(train), spacing_m, method=method, max_gap_m=max(gap, fold_gap), error_folds=0)
+        except MagnavError:  # a fold that leaves too little to grid predicts nothing
+            return np.full(len(test), np.nan)
+        return np.asarray(m.value(sub.lat[test], sub.lon[test]), dtype=float)
+
+    model = cross_validate(
+        coords,
+        sub.value,
+        regrid,
+        node_d,
+        spacing_m,
+        g_read,
+        folds=folds,
+        block_m=block_m,
+        azimuth_rad=az,
+        seed=seed,
+        inflation=inflation,
+    )
+    g_nodes = np.where(np.isfinite(grad), grad, np.nanmedian(grad))
+    layer = model.sigma_at(node_d.reshape(vals.shape), g_nodes)
+    return layer, model
+
+
+def gradient_magnitude(values: FloatArray, spacing_m: float) -> FloatArray:
+    """Horizontal gradient magnitude (unit / m) of a local grid (ny, nx) of node spacing ``spacing_m``: central
+    differences inside, one-sided at the edges and next to NaN nodes; NaN where neither neighbour is finite."""
+    out = []
+    for ax in (0, 1):
+        v = np.moveaxis(values, ax, 0)
+        fwd = np.full_like(v, np.nan)
+        bwd = np.full_like(v, np.nan)
+        fwd[:-1] = (v[1:] - v[:-1]) / spacing_m
+        bwd[1:] = (v[1:] - v[:-1]) / spacing_m
+        both = np.isfinite(fwd) & np.isfinite(bwd)
+        g = np.where(both, 0.5 * (fwd + bwd), np.where(np.isfinite(fwd), fwd, bwd))
+        out.append(np.moveaxis(g, 0, ax))
+    return np.hypot(out[0], out[1])
 
 
 # ------------------------------------------------------------------------------------------------ scattered
@@ -268,7 +387,9 @@ def _bidirectional(
         V[r, lo:hi] = np.where(ok, np.interp(un, uu, vv), np.nan)
         H[r, lo:hi] = np.where(ok, np.interp(un, uu, hh), np.nan)
     # line spacing: median separation of neighbouring lines at common stations
-    line_w = np.nanmedian(W, axis=1)
+    with warnings.catch_warnings():  # a line without a station on the work grid (a fold's fragment) is NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        line_w = np.nanmedian(W, axis=1)
     sep = np.diff(np.sort(line_w[np.isfinite(line_w)]))
     sep = sep[sep > 0.25 * spacing]
     across_gap = 2.5 * float(np.median(sep)) if sep.size else 2.5 * gap

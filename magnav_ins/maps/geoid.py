@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..core.errors import MapError
 from ..core.units import DEG_TO_RAD
 from . import interp
+from .shipped import data_path
 
 FloatArray = NDArray[np.float64]
 
@@ -36,8 +37,6 @@ GEOID_NAME = "EIGEN-6C4 geoid (10', shipped with magnav_ins)"
 def _grid() -> tuple[FloatArray, float, float, float, float]:
     """(values (ny, nx, 1) m, lat0, dlat, lon0, dlon) in rad; read once (the file is read-only package data)."""
     import xarray as xr
-
-    from .builtin import data_path
 
     path = data_path(GEOID_FILE)
     if not path.is_file():

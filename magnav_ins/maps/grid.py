@@ -6,6 +6,11 @@ Conventions
 * Local frame (``frame="local"``): axes ``northing`` (ny,) and ``easting`` (nx,) in metres of the local tangent plane
   (NED north/east) about ``origin = (lat0, lon0, h0)`` (rad, rad, m). ``crs`` is a free-text label (e.g. a UTM zone)
   kept for provenance; the conversion used is always the tangent plane of :func:`magnav_ins.core.frames.geodetic_to_ned`.
+* Projected frame (``frame="projected"``): axes northing (ny,) and easting (nx,) in metres of the projected CRS
+  ``crs`` (an EPSG code, PROJ string or WKT: a UTM zone, Mercator, ...), used in that CRS: queries in WGS-84
+  latitude/longitude are transformed on the fly and gradients are given in metres of true north/east at the query
+  point (:mod:`magnav_ins.maps.projection`, the only pyproj user). ``origin`` (default: the grid centre) is the
+  tangent point of :meth:`to_local` / :meth:`value_ne`.
 * ``values`` (ny, nx) for scalar kinds, (ny, nx, 3) NED components for ``vector_field_nt``; NaN = no data.
 * Queries (:meth:`GridMap.value`, :meth:`GridMap.gradient_ne`, :meth:`GridMap.covers`) take latitude and longitude in
   rad for every frame; :meth:`GridMap.value_ne` takes northing/easting in metres of the map's own local plane
@@ -42,10 +47,11 @@ from ..core.errors import MapError
 from ..core.frames import radii_of_curvature
 from ..core.types import FieldKind
 from . import interp
+from .projection import Projection
 from .tangent import geodetic_to_tangent, tangent_to_geodetic
 
 FloatArray = NDArray[np.float64]
-Frame = Literal["geodetic", "local"]
+Frame = Literal["geodetic", "local", "projected"]
 Method = Literal["bilinear", "bicubic"]
 
 _TWO_PI = 2.0 * np.pi
@@ -81,7 +87,7 @@ class GridMap:
     kind
         What the map measures (:class:`FieldKind`), which fixes its unit.
     frame
-        ``"geodetic"`` or ``"local"``.
+        ``"geodetic"``, ``"local"`` or ``"projected"`` (then ``crs`` is required and is the projection).
     altitude_m
         Ellipsoidal height of the map surface (m): a float, or an (ny, nx) draped surface.
     datum
@@ -90,7 +96,8 @@ class GridMap:
         ``(lat0, lon0, h0)`` (rad, rad, m) of a local frame's tangent plane; for a geodetic map, optional (default:
         the grid centre at the mean altitude) and only used by :meth:`to_local` / :meth:`value_ne`.
     crs
-        Free-text CRS label, kept for provenance.
+        Free-text CRS label, kept for provenance; for ``frame="projected"`` the projected CRS itself (anything
+        ``pyproj.CRS.from_user_input`` reads: ``"EPSG:32613"``, a PROJ string, WKT).
     altitude_tolerance_m
         If set, queries with ``h`` farther than this from the map surface raise :class:`MapError`.
     error_sigma
@@ -125,8 +132,8 @@ class GridMap:
             self.kind = FieldKind(kind)
         except ValueError:
             raise MapError(f"GridMap: unknown kind {kind!r}; expected one of {[k.value for k in FieldKind]}") from None
-        if frame not in ("geodetic", "local"):
-            raise MapError(f"GridMap: frame must be 'geodetic' or 'local', got {frame!r}")
+        if frame not in ("geodetic", "local", "projected"):
+            raise MapError(f"GridMap: frame must be 'geodetic', 'local' or 'projected', got {frame!r}")
         if str(datum).upper().replace("-", "").replace(" ", "") != "WGS84":
             raise MapError(f"GridMap: datum {datum!r} is not supported; expected 'WGS84' (reproject the map first)")
         self.frame: Frame = frame
@@ -135,6 +142,11 @@ class GridMap:
         self.name = name
         self.metadata: dict[str, Any] = dict(metadata or {})
         self.altitude_tolerance_m = altitude_tolerance_m
+        self.projection: Projection | None = None
+        if frame == "projected":
+            if not crs:
+                raise MapError(f"GridMap '{name}': a projected frame needs crs= (EPSG code, PROJ string or WKT)")
+            self.projection = Projection(crs, where=f"GridMap '{name}' crs")
         ynames = ("lat", "lon") if frame == "geodetic" else ("northing", "easting")
         self._y, self._y0, self._dy = _regular_axis(ynames[0], northing_axis_or_lat)
         self._x, self._x0, self._dx = _regular_axis(ynames[1], easting_axis_or_lon)
@@ -177,6 +189,11 @@ class GridMap:
             self.origin: tuple[float, float, float] = tuple(float(o) for o in origin)  # type: ignore[assignment]
         elif origin is not None:
             self.origin = tuple(float(o) for o in origin)  # type: ignore[assignment]
+        elif frame == "projected":
+            la0, lo0 = self.projection.inverse(0.5 * (self._x[0] + self._x[-1]), 0.5 * (self._y[0] + self._y[-1]))  # type: ignore[union-attr]
+            if not (np.isfinite(la0) and np.isfinite(lo0)):
+                raise MapError(f"GridMap '{name}': the grid centre is outside the projection {crs!r}")
+            self.origin = (float(la0), float(lo0), h_ref)
         else:
             self.origin = (0.5 * (self._y[0] + self._y[-1]), 0.5 * (self._x[0] + self._x[-1]), h_ref)
         self._h_ref = h_ref
@@ -270,6 +287,13 @@ class GridMap:
         """Geodetic bounding box ``(lat_min, lat_max, lon_min, lon_max)`` in rad (corners of a local map)."""
         if self.frame == "geodetic":
             return (float(self._y[0]), float(self._y[-1]), float(self._x[0]), float(self._x[-1]))
+        if self.frame == "projected":  # the edges, sampled: a projected rectangle is curved in lat/lon
+            t = np.linspace(0.0, 1.0, 65)
+            y0, y1, x0, x1 = self._y[0], self._y[-1], self._x[0], self._x[-1]
+            ee = np.r_[x0 + t * (x1 - x0), x0 + t * (x1 - x0), np.full(65, x0), np.full(65, x1)]
+            nn = np.r_[np.full(65, y0), np.full(65, y1), y0 + t * (y1 - y0), y0 + t * (y1 - y0)]
+            la, lo = self.projection.inverse(ee, nn)  # type: ignore[union-attr]
+            return (float(np.nanmin(la)), float(np.nanmax(la)), float(np.nanmin(lo)), float(np.nanmax(lo)))
         nn, ee = np.meshgrid(self._y[[0, -1]], self._x[[0, -1]], indexing="ij")
         la, lo = self.from_local(nn.ravel(), ee.ravel())
         return (float(la.min()), float(la.max()), float(lo.min()), float(lo.max()))
@@ -279,6 +303,11 @@ class GridMap:
         """Approximate node spacing (north, east) in metres (at the grid centre for geodetic maps)."""
         if self.frame == "local":
             return (self._dy, self._dx)
+        if self.frame == "projected":  # projected metres per ground metre at the origin (the grid centre)
+            J = self.projection.jacobian(self.origin[0], self.origin[1])[0]  # type: ignore[union-attr]
+            # ground length of one node step along each grid axis: the inverse Jacobian's columns
+            Jinv = np.linalg.inv(J)  # (north, east) ground m per (easting, northing) projected m
+            return (float(self._dy * np.hypot(*Jinv[:, 1])), float(self._dx * np.hypot(*Jinv[:, 0])))
         lat_c = 0.5 * (self._y[0] + self._y[-1])
         r_n, r_e = radii_of_curvature(lat_c)
         return (float(self._dy * (r_n + self._h_ref)), float(self._dx * (r_e + self._h_ref) * np.cos(lat_c)))
@@ -314,10 +343,7 @@ class GridMap:
         shape = n.shape
         if self._err2 is None:
             return np.full(shape, np.nan)
-        if self.frame == "local":
-            yq, xq = np.ascontiguousarray(n.ravel()), np.ascontiguousarray(e.ravel())
-        else:
-            yq, xq = self.from_local(n.ravel(), e.ravel())
+        yq, xq = self._ne_axes(n, e)
         out = interp.bilinear_scalar(self._err2, self._y0, self._dy, self._x0, self._dx, yq, xq, self._period)
         return out.reshape(shape)
 
@@ -370,8 +396,21 @@ class GridMap:
         shape = la.shape
         if self.frame == "geodetic":
             return np.ascontiguousarray(la.ravel()), np.ascontiguousarray(lo.ravel()), shape
+        if self.frame == "projected":
+            e, n = self.projection.forward(la.ravel(), lo.ravel())  # type: ignore[union-attr]
+            return np.ascontiguousarray(n), np.ascontiguousarray(e), shape
         n, e = self.to_local(la.ravel(), lo.ravel())
         return np.ascontiguousarray(n), np.ascontiguousarray(e), shape
+
+    def _ne_axes(self, n: FloatArray, e: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Grid axes (y, x) of local-plane (northing, easting) m about :attr:`origin`."""
+        if self.frame == "local":
+            return np.ascontiguousarray(n.ravel()), np.ascontiguousarray(e.ravel())
+        la, lo = self.from_local(n.ravel(), e.ravel())
+        if self.frame == "projected":
+            pe, pn = self.projection.forward(la, lo)  # type: ignore[union-attr]
+            return np.ascontiguousarray(pn), np.ascontiguousarray(pe)
+        return la, lo
 
     def _check_h(self, yq: FloatArray, xq: FloatArray, h: ArrayLike | None) -> None:
         if h is None or self.altitude_tolerance_m is None:
@@ -415,10 +454,7 @@ class GridMap:
         e = np.asarray(easting, dtype=float)
         n, e = np.broadcast_arrays(n, e)
         shape = n.shape
-        if self.frame == "local":
-            yq, xq = np.ascontiguousarray(n.ravel()), np.ascontiguousarray(e.ravel())
-        else:
-            yq, xq = self.from_local(n.ravel(), e.ravel())
+        yq, xq = self._ne_axes(n, e)
         return self._shape_out(self._kernel(method, False)(yq, xq), shape, ())
 
     def gradient_ne(
@@ -434,6 +470,13 @@ class GridMap:
             r_n, r_e = radii_of_curvature(yq)
             g[:, :, 0] /= (r_n + self._h_ref)[:, None]
             g[:, :, 1] /= ((r_e + self._h_ref) * np.cos(yq))[:, None]
+        elif self.frame == "projected":
+            # chain rule: d/dnorth = dv/dE dE/dnorth + dv/dN dN/dnorth (J rows easting, northing; columns north, east)
+            la, lo = np.broadcast_arrays(np.asarray(lat, float), np.asarray(lon, float))
+            J = self.projection.jacobian(la.ravel(), lo.ravel())  # type: ignore[union-attr]
+            gn, ge = g[:, :, 0].copy(), g[:, :, 1].copy()  # per projected northing / easting metre
+            g[:, :, 0] = ge * J[:, 0, 0][:, None] + gn * J[:, 1, 0][:, None]
+            g[:, :, 1] = ge * J[:, 0, 1][:, None] + gn * J[:, 1, 1][:, None]
         else:
             g = self._rotate_local_gradient(g, yq, xq)
         return self._shape_out(g, shape, (2,))
@@ -511,4 +554,6 @@ class GridMap:
             lat, lon = np.meshgrid(self._y, self._x, indexing="ij")
             return lat, lon
         n, e = np.meshgrid(self._y, self._x, indexing="ij")
+        if self.frame == "projected":
+            return self.projection.inverse(e, n)  # type: ignore[union-attr]
         return self.from_local(n, e)

@@ -179,8 +179,17 @@ def hallway_map(
     sigma_mg: float = 12.0,
     correlation_length_m: float = 0.6,
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    centre_fraction: float = 1.0,
+    quiet_side_m: tuple[float, float] | None = None,
 ) -> GridMap:
     """A Storms-like indoor three-axis map (module docstring): an L-shaped hallway on a ``spacing_m`` grid.
+
+    ``centre_fraction`` < 1 makes the variations weaker towards each hallway's centre line (Storms sec. 4.4.2: "there
+    is not much variation in the middle of the hallway", larger variations "near structures such as walls"): the
+    random field is scaled by ``f + (1 - f) |d| / half-width`` (``d`` the distance from the centre line).
+    ``quiet_side_m`` = (start, end) m along the side hallway (from the main hallway's east wall) scales the field by
+    ``centre_fraction`` across the whole width there (sec. 4.5.1: a section "right around 10 meters" of the side
+    hallway "does not have a lot of variation"). The defaults leave the field as it was.
 
     The main hallway runs north (the X axis of Storms Fig. 3.2) for ``main_length_m`` with its west wall at
     easting 0 and width ``width_m``; the side hallway leaves its far end eastward for ``side_length_m``. Nodes
@@ -194,6 +203,22 @@ def hallway_map(
     n_width = int(round(width_m / spacing_m)) + 1
     northing, easting = grid_axes((ny, nx), spacing_m)
     field = gaussian_random_field((ny, nx), spacing_m, correlation_length_m, sigma_mg, rng, components=3)
+    if centre_fraction != 1.0 or quiet_side_m is not None:
+        f = float(centre_fraction)
+        if not 0.0 <= f <= 1.0:
+            raise InputError(f"centre_fraction: expected 0 <= f <= 1, got {centre_fraction!r}")
+        gn, ge = np.meshgrid(northing, easting, indexing="ij")
+        half = width_m / 2.0
+        d_main = np.abs(ge - half)  # from the main hallway's centre line
+        d_side = np.abs(gn - (northing[-1] - half))  # from the side hallway's centre line
+        in_side = ge > width_m
+        d = np.where(in_side, d_side, np.where(gn > northing[-1] - width_m, np.minimum(d_main, d_side), d_main))
+        scale = f + (1.0 - f) * np.clip(d / half, 0.0, 1.0)
+        if quiet_side_m is not None:
+            a, b = (float(x) for x in quiet_side_m)
+            quiet = in_side & (ge - width_m >= a) & (ge - width_m <= b)
+            scale = np.where(quiet, f, scale)
+        field = field * scale[:, :, None]
     values = (field + np.asarray(mean_mg, float)) * NT_PER_MILLIGAUSS
     inside = np.zeros((ny, nx), dtype=bool)
     inside[:, :n_width] = True  # main hallway

@@ -18,6 +18,13 @@ Conventions
   farther than ``max_distance_m``); :meth:`TrackMap.gradient_ne` is the along-track derivative ``df/ds`` at that
   point times the unit heading vector (the only horizontal derivative a track observes); :meth:`TrackMap.covers`
   is "within ``max_distance_m`` of a point".
+
+Body-frame vector maps (Shockley 003 sec. 4.1, 4.2): a strapdown three-axis magnetometer reads the field in the
+vehicle's (level) body frame, ``B_b = C_bn(psi) B_n`` (:func:`ned_to_body`), so the same road read in the other
+direction, or at another heading, reads differently (``x`` and ``y`` change sign when driving the other way).
+Either the map holds the field per direction of travel (:meth:`TrackMap.directional`: a body-frame map for driving
+each road forwards or backwards), or it is kept in the navigation frame and the readings are rotated with the
+vehicle's attitude (:func:`body_to_ned`).
 """
 
 from __future__ import annotations
@@ -268,6 +275,31 @@ class TrackMap:
             raise MapError(f"TrackMap '{self.name}': no segment {k}; it has {self.n_segments}")
         return slice(int(idx[0]), int(idx[-1]) + 1)
 
+    def directional(self, reverse: bool = False) -> TrackMap:
+        """A body-frame map of this NED vector track for driving every segment forwards (its point order) or, with
+        ``reverse``, backwards (points reversed within each segment, heading + pi): the values a level strapdown
+        magnetometer reads there in that direction (:func:`ned_to_body`). Shockley's per-direction road maps."""
+        if self.kind.components != 3:
+            raise MapError(
+                f"TrackMap '{self.name}': a body-frame map needs vector values, the map holds {self.kind.value}"
+            )
+        order = np.arange(len(self))
+        if reverse:
+            order = np.concatenate([np.arange(len(self))[self.segment(k)][::-1] for k in range(self.n_segments)])
+        psi = self.heading[order] + (np.pi if reverse else 0.0)
+        return TrackMap(
+            self.lat[order],
+            self.lon[order],
+            self.h[order],
+            ned_to_body(self.values[order], psi),
+            kind=self.kind,
+            segment_id=self.segment_id[order],
+            max_distance_m=self.max_distance_m,
+            origin=self.origin,
+            name=f"{self.name} (body frame, {'reverse' if reverse else 'forward'})",
+            metadata={**self.metadata, "frame": "body", "direction": "reverse" if reverse else "forward"},
+        )
+
     # ------------------------------------------------------------------ resampling
     def resample(self, step_m: float) -> TrackMap:
         """Distance-sampled copy (Shockley 003 sec. 4.4): on every segment, points every ``step_m`` metres of
@@ -299,6 +331,23 @@ class TrackMap:
             name=self.name,
             metadata={**self.metadata, "resample_step_m": step},
         )
+
+
+def ned_to_body(values_ned: ArrayLike, heading: ArrayLike) -> FloatArray:
+    """Level body-frame (FRD) components of NED vectors for a vehicle heading ``heading`` (rad, clockwise from
+    north): ``x = cos psi N + sin psi E``, ``y = -sin psi N + cos psi E``, ``z = D``; (N, 3) in, (N, 3) out."""
+    v = np.atleast_2d(np.asarray(values_ned, float))
+    psi = np.broadcast_to(np.asarray(heading, float), v.shape[:1])
+    c, s = np.cos(psi), np.sin(psi)
+    return np.column_stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1], v[:, 2]])
+
+
+def body_to_ned(values_body: ArrayLike, heading: ArrayLike) -> FloatArray:
+    """The inverse of :func:`ned_to_body`: level body-frame readings (N, 3) to NED with the heading applied."""
+    v = np.atleast_2d(np.asarray(values_body, float))
+    psi = np.broadcast_to(np.asarray(heading, float), v.shape[:1])
+    c, s = np.cos(psi), np.sin(psi)
+    return np.column_stack([c * v[:, 0] - s * v[:, 1], s * v[:, 0] + c * v[:, 1], v[:, 2]])
 
 
 def road_network_from_grid(

@@ -60,6 +60,9 @@ def _as_components(values: ArrayLike) -> FloatArray:
 def _node_spacing(fmap: GridMap) -> tuple[FloatArray, FloatArray]:
     """Per-row node spacing (north, east) in m, each (ny, 1): exact per latitude row for geodetic maps."""
     ny = fmap.shape[0]
+    if fmap.frame == "projected":  # metres of the projection; the ground spacing at the map's centre
+        dn, de = fmap.spacing_m
+        return np.full((ny, 1), dn), np.full((ny, 1), de)
     if fmap.frame == "local":
         dn, de = fmap.spacing_m
         return np.full((ny, 1), dn), np.full((ny, 1), de)

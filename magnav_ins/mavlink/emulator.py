@@ -1,11 +1,13 @@
 """An autopilot emulator for tests and benchmarks without hardware.
 
 It plays a simulated flight over a map as an ArduPilot-like autopilot would: HEARTBEAT at 1 Hz, HIGHRES_IMU at the
-IMU rate (magnetometer in ArduPilot's milligauss x 1000 scale), ATTITUDE and GLOBAL_POSITION_INT at 5 Hz (for the
-bridge's initialisation), optionally SCALED_PRESSURE from the truth height (ICAO standard atmosphere plus white
-noise), paced to the wall clock (or faster by ``speedup``). It records every position message the
-bridge sends back, so a test can compare them with the truth. Runs in a background thread; MAVLink goes through
-:mod:`.link` (the only pymavlink import).
+IMU rate (magnetometer in ArduPilot's milligauss x 1000 scale), ATTITUDE, GLOBAL_POSITION_INT and GPS_RAW_INT (a 3D
+fix from the truth, 1 m accuracy, until :meth:`AutopilotEmulator.lose_gnss`) at 5 Hz, optionally EXTENDED_SYS_STATE
+and SCALED_PRESSURE from the truth height (ICAO standard atmosphere plus white noise), paced to the wall clock (or
+faster by ``speedup``). Like a fresh ArduPilot link it streams only HEARTBEAT until SET_MESSAGE_INTERVAL asks for
+HIGHRES_IMU, and a :meth:`~AutopilotEmulator.reboot` makes it forget that request, go silent for a moment and restart
+its clock. It records every position message the bridge sends back, so a test can compare them with the truth. Runs
+in a background thread; MAVLink goes through :mod:`.link` (the only pymavlink import).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from .link import (
     Heartbeat,
     MavLink,
     OutputMessage,
+    StatusTextMessage,
 )
 
 
@@ -49,6 +52,8 @@ class EmulatorRecord:
     first_output_s: float | None = None
     imu_sent: int = 0
     pressure_sent: int = 0
+    statustexts: list[str] = field(default_factory=list)
+    streaming_since_reboot_s: float | None = None  # wall time from a reboot until HIGHRES_IMU was asked for again
 
 
 class AutopilotEmulator:
@@ -76,6 +81,8 @@ class AutopilotEmulator:
         pressure_rate_hz: float | None = None,
         pressure_noise_pa: float = 2.0,
         seed: int = 0,
+        landed_state: str | None = None,
+        gnss_sigma_m: float = 1.0,
     ) -> None:
         if len(truth) != len(imu):
             raise ValueError("truth and imu must have the same samples")
@@ -110,6 +117,12 @@ class AutopilotEmulator:
             self._pressure_pa = np.asarray(isa_pressure_pa(truth.h), float)
             self._temperature_c = np.asarray(isa_temperature_k(truth.h), float) - 273.15
         self.started_at = 0.0
+        self.landed_state = landed_state
+        self.gnss_sigma_m = float(gnss_sigma_m)
+        self._gnss_on = True
+        self._silent_until = -np.inf
+        self._reboot_silence_s = 1.5
+        self._reboot_wall: float | None = None
 
     def start(self) -> AutopilotEmulator:
         self.started_at = time.monotonic()
@@ -139,7 +152,12 @@ class AutopilotEmulator:
             elif isinstance(msg, CommandMessage):
                 self.record.commands.append(msg)
                 if msg.command == SET_MESSAGE_INTERVAL and int(msg.params[0]) == MSG_ID["HIGHRES_IMU"]:
+                    if not self.streaming and self._reboot_wall is not None:
+                        self.record.streaming_since_reboot_s = time.monotonic() - self._reboot_wall
+                        self._reboot_wall = None
                     self.streaming = True
+            elif isinstance(msg, StatusTextMessage):
+                self.record.statustexts.append(msg.text)
             elif isinstance(msg, Heartbeat) and msg.mav_type == MAV_TYPE_ONBOARD_CONTROLLER:
                 # only the companion computer's: a router (MAVProxy) in between adds its own GCS heartbeats
                 self.record.heartbeats_from_bridge += 1
@@ -172,6 +190,13 @@ class AutopilotEmulator:
             if self._reboot_requested and k < n:
                 self._time_offset = 1.0 - t[k]
                 self._reboot_requested = False
+                self.streaming = False  # a rebooted ArduPilot forgets every SET_MESSAGE_INTERVAL
+                self._reboot_wall = time.monotonic()
+                self._silent_until = time.monotonic() + self._reboot_silence_s
+                wall0, sim0 = time.monotonic(), t[k]
+            if time.monotonic() < self._silent_until:  # rebooting: nothing on the link
+                time.sleep(0.01)
+                continue
             if self._dropout_s > 0.0 and k < n:
                 self._drop_until = t[k] + self._dropout_s
                 self._dropout_s = 0.0
@@ -183,12 +208,22 @@ class AutopilotEmulator:
                 mag = None if self.mag_b_nt is None else self.mag_b_nt[k]
                 self.link.send_highres_imu(ts, self.imu.gyro_b[k], self.imu.accel_b[k], mag)
                 self.record.imu_sent += 1
+                if ts < next_pos - 1.0:  # the clock went back (reboot)
+                    next_pos = ts
                 if self.send_position and ts >= next_pos:
                     roll, pitch, yaw = euler_from_q_nb(self.truth.q_nb[k])
                     self.link.send_attitude(ts, float(roll), float(pitch), float(yaw))
-                    self.link.send_global_position_int(
-                        ts, self.truth.lat[k], self.truth.lon[k], self.truth.h[k], self.truth.v_n[k]
-                    )
+                    v = self.truth.v_n[k]
+                    self.link.send_global_position_int(ts, self.truth.lat[k], self.truth.lon[k], self.truth.h[k], v)
+                    if self._gnss_on:
+                        self.link.send_gps_raw_int(
+                            ts, 3, self.truth.lat[k], self.truth.lon[k], self.truth.h[k], sigma_h=self.gnss_sigma_m,
+                            speed=float(np.hypot(v[0], v[1])), course=float(np.arctan2(v[1], v[0])),
+                        )  # fmt: skip
+                    else:  # the receiver lost its fix: ArduPilot reports fix type 1 at 0 N 0 E
+                        self.link.send_gps_raw_int(ts, 1, 0.0, 0.0, 0.0, sigma_h=99.0, satellites=0)
+                    if self.landed_state is not None:
+                        self.link.send_extended_sys_state(self.landed_state)
                     next_pos = ts + 0.2
                 if self._pressure_pa is not None and ts < next_press - 1.0:  # the clock went back (reboot)
                     next_press = ts
@@ -204,7 +239,7 @@ class AutopilotEmulator:
                     dt_p = 1.0 / self.pressure_rate_hz  # type: ignore[operator]
                     next_press = next_press + dt_p if next_press + dt_p > ts else ts + dt_p
                 k += 1
-            if time.monotonic() >= next_hb:
+            if time.monotonic() >= next_hb and time.monotonic() >= self._silent_until:
                 self.link.send_heartbeat(autopilot=True)
                 next_hb = time.monotonic() + 1.0
             self._drain()
@@ -218,9 +253,15 @@ class AutopilotEmulator:
         """Send no SCALED_PRESSURE for the next ``duration_s`` seconds of flight (the IMU goes on)."""
         self._pressure_pause_s = float(duration_s)
 
-    def reboot(self) -> None:
-        """Make the autopilot clock jump back to about 1 s, as after a reboot (the flight itself continues)."""
+    def reboot(self, silence_s: float = 1.5) -> None:
+        """Reboot like ArduPilot: ``silence_s`` of nothing on the link, then the clock restarts near 1 s and only
+        HEARTBEAT is sent until HIGHRES_IMU is asked for again (the flight itself continues)."""
+        self._reboot_silence_s = float(silence_s)
         self._reboot_requested = True
+
+    def lose_gnss(self) -> None:
+        """From now on GPS_RAW_INT reports no fix (GLOBAL_POSITION_INT, the autopilot's EKF, goes on)."""
+        self._gnss_on = False
 
 
 @dataclass(frozen=True)

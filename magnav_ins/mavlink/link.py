@@ -270,6 +270,8 @@ class CommandMessage:
     params: tuple[float, ...]
     sysid: int
     compid: int
+    target_system: int = 0
+    target_component: int = 0
 
 
 @dataclass(frozen=True)
@@ -535,7 +537,8 @@ class MavLink:
         """Decode one pymavlink message, counting and dropping junk and foreign senders."""
         kind = msg.get_type()
         if kind in ("BAD_DATA", "UNKNOWN"):
-            self.stats.bad_data += 1
+            if "signature" not in str(getattr(msg, "reason", "")).lower():  # signing drops are counted as such
+                self.stats.bad_data += 1
             return None
         self.stats.received += 1
         out = self._decode(msg, kind)
@@ -664,7 +667,7 @@ class MavLink:
                 return TimesyncMessage(int(msg.tc1), int(msg.ts1), *src)
             if kind == "COMMAND_LONG":
                 params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
-                return CommandMessage(int(msg.command), params, *src)
+                return CommandMessage(int(msg.command), params, *src, int(msg.target_system), int(msg.target_component))
             if kind == "GPS_INPUT":
                 healthy = msg.fix_type >= 3
                 return OutputMessage(

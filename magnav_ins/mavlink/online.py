@@ -21,12 +21,13 @@ Units: SI, body FRD, NED, as everywhere in the package.
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Any
 
 import numpy as np
 
 from ..core.errors import ConfigError
-from ..core.types import NavEstimate, NavState
+from ..core.types import Innovation, NavEstimate, NavState
 from ..ins.strapdown import SampleMeans
 from ..pipeline import Pipeline
 
@@ -58,6 +59,15 @@ class OnlinePipeline(Pipeline):
         self._gyro_bias = np.zeros(3)
         self._accel_bias = np.zeros(3)
         self.set_static_bias(gyro_bias_b, accel_bias_b)
+        #: the INS attitude at the last IMU samples (for :meth:`push_attitude`), and its innovations
+        self._track_attitude = getattr(fuser, "name", "") == "ukf"
+        self._attitudes: deque[tuple[float, np.ndarray]] = deque(maxlen=64)
+        self.attitude_innovations: list[Innovation] = []
+
+    def set_sample_type(self, sample_type: str) -> None:
+        """Change the sample type of later samples (the bridge learns it from the autopilot's heartbeat)."""
+        self._means = SampleMeans(sample_type)
+        self.sample_type = sample_type
 
     def set_static_bias(self, gyro_bias_b: np.ndarray | None, accel_bias_b: np.ndarray | None) -> None:
         """Subtract these biases (rad/s, m/s^2, body FRD; None = zero) from every later sample."""
@@ -74,6 +84,25 @@ class OnlinePipeline(Pipeline):
         b_a, b_g = getattr(self.fuser, "bias", (np.zeros(3), np.zeros(3)))
         return self._gyro_bias + np.asarray(b_g, float), self._accel_bias + np.asarray(b_a, float)
 
+    def push_attitude(self, t: float, q_nb: np.ndarray, sigma_rad: tuple[float, float, float]) -> Innovation | None:
+        """An independent attitude (the autopilot's AHRS): ``q_nb`` scalar-last body FRD -> NED at ``t`` (s, the IMU
+        clock), 1-sigmas ``sigma_rad`` (tilt about north, east; heading), as a measurement of the INS attitude error
+        (:mod:`magnav_ins.aiding.fusion.attitude_aid`). Compared with the INS attitude of the IMU sample nearest to
+        ``t`` (within 50 ms; else not used, None). Only for the UKF (the free-inertial baseline stays free)."""
+        from ..aiding.fusion.attitude_aid import attitude_error, correct_attitude
+
+        if getattr(self.fuser, "name", "") != "ukf" or not self._attitudes:
+            return None
+        ts = np.array([a[0] for a in self._attitudes])
+        k = int(np.argmin(np.abs(ts - t)))
+        if abs(ts[k] - t) > 0.05:
+            return None
+        inn = correct_attitude(self.fuser, attitude_error(self._attitudes[k][1], q_nb), sigma_rad)
+        self.attitude_innovations.append(inn)
+        if inn.accepted:
+            self._attitudes.clear()  # the INS attitudes before the correction are not the INS's any more
+        return inn
+
     def forget_last_sample(self) -> None:
         """After a gap: the next ``instantaneous`` sample has no previous one to average with."""
         self._means.reset()
@@ -83,6 +112,10 @@ class OnlinePipeline(Pipeline):
         increments), body FRD."""
         w, f = self._means.means(t, gyro_b, accel_b)
         super().push_imu(t, w - self._gyro_bias, f - self._accel_bias)
+        if self._track_attitude:
+            from ..aiding.fusion.attitude_aid import ins_attitude
+
+            self._attitudes.append((float(t), ins_attitude(self.fuser)))
 
 
 def make_online_pipeline(

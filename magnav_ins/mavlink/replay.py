@@ -66,6 +66,7 @@ TRAJ_COLUMNS = (
     "yaw_deg",
     "sigma_n_m",
     "sigma_e_m",
+    "hpl_m",
 )
 _TOL = 1e-9
 DEG_E7 = 1e7
@@ -374,6 +375,7 @@ class ReplayResult:
     map_covers_start: bool
     error_m: FloatArray | None = None
     baro: dict[str, Any] | None = None
+    hpl_m: FloatArray | None = None  # (N,) the fuser's horizontal protection level, m (NaN: none)
 
     def summary(self) -> dict[str, Any]:
         """Counts, fix statistics and (with GNSS) horizontal error figures, for the stdout summary and JSON."""
@@ -535,10 +537,12 @@ def replay(
     out_t: list[float] = []
     navs: list[NavState] = []
     sig: list[tuple[float, float]] = []
+    hpl: list[float] = []
 
     def record() -> None:
         est = pipe.estimate()
         P = np.asarray(est.P)
+        hpl.append(float(est.hpl_m))
         out_t.append(est.nav.t)
         navs.append(est.nav)
         sig.append((math.sqrt(max(P[0, 0], 0.0)), math.sqrt(max(P[1, 1], 0.0))))
@@ -617,6 +621,7 @@ def replay(
         covers,
         err,
         _baro_summary(rec, baro_applied, bh),
+        np.asarray(hpl, float),
     )
 
 
@@ -648,8 +653,9 @@ def write_trajectory(path: str | Path, result: ReplayResult) -> None:
         yaw,
         result.sigma_ne[:, 0],
         result.sigma_ne[:, 1],
+        result.hpl_m if result.hpl_m is not None else np.full(len(result.t), np.nan),
     ]
     data = np.column_stack(cols)
-    fmt = ["%.6f", "%.9f", "%.9f", "%.3f", "%.4f", "%.4f", "%.4f", "%.5f", "%.5f", "%.5f", "%.3f", "%.3f"]
+    fmt = ["%.6f", "%.9f", "%.9f", "%.3f", "%.4f", "%.4f", "%.4f", "%.5f", "%.5f", "%.5f", "%.3f", "%.3f", "%.3f"]
     with atomic_path(path) as tmp:
         np.savetxt(tmp, data, fmt=fmt, delimiter=",", header=",".join(TRAJ_COLUMNS), comments="")

@@ -190,6 +190,7 @@ def run_demo(cfg: DemoConfig | None = None) -> DemoResult:
                 np.array([f.lon for f in fixes], float),
                 np.array([f.cov_ne for f in fixes], float).reshape(-1, 2, 2),
                 np.array([f.available for f in fixes], bool),
+                hpl_m=np.asarray(res.hpl_m, float) if len(res.hpl_m) == len(nav.t) else None,
             )
         )
     t_out = aided.trajectory.t
@@ -226,6 +227,11 @@ def run_demo(cfg: DemoConfig | None = None) -> DemoResult:
         "fix_error_median_m": _median(summ.estimators[name].metrics.fix_errors_m),
         "fix_error_rms_m": _rms(summ.estimators[name].metrics.fix_errors_m),
         "nees_mean": est["nees_mean"],
+        "fix_nees_mean": est["fix_nees_mean"],
+        "hpl_median_m": est["hpl_median_m"],
+        "hpl_exceedance": est["hpl_exceedance"],
+        "integrity_risk": float(aided.integrity_risk),
+        "free_inertial_nees_mean": fi["nees_mean"],
         "first_fix_accepted_s": float(t_first - truth.t[0]) if np.isfinite(t_first) else None,
         "aided_minus_free_before_first_fix_m": float(same.max()) if same.size else 0.0,
         "no_fix_reasons": no_fix_reasons(aided.fixes),
@@ -282,6 +288,13 @@ def summary_table(summary: dict[str, Any]) -> str:
         ("horizontal RMS (m)", _m(summary["rms_horizontal_m"]), _m(summary["free_inertial_rms_horizontal_m"])),
         ("horizontal max (m)", _m(summary["max_horizontal_m"]), _m(summary["free_inertial_max_horizontal_m"])),
         ("final error (m)", _m(summary["final_horizontal_m"]), _m(summary["free_inertial_final_horizontal_m"])),
+        ("NEES (2-D, 2 when honest)", _m(summary["nees_mean"], 2), _m(summary.get("free_inertial_nees_mean"), 2)),
+        (
+            f"HPL median (m, risk {summary.get('integrity_risk', 1e-3):g})",
+            _m(summary.get("hpl_median_m")),
+            "-",
+        ),
+        ("HPL exceeded", _pct(summary.get("hpl_exceedance")), "-"),
         ("fixes issued / attempts", f"{summary['fixes_issued']} / {summary['fix_attempts']}", "-"),
         ("fixes accepted by the filter", str(summary["fixes_accepted"]), "-"),
     ]
@@ -299,8 +312,12 @@ def summary_table(summary: dict[str, Any]) -> str:
     return "\n".join([head, *lines, tail])
 
 
-def _m(x: float | None) -> str:
-    return "-" if x is None else f"{x:.1f}"
+def _m(x: float | None, digits: int = 1) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100.0 * x:.1f} %"
 
 
 def write_demo(result: DemoResult, out_dir: str | Path, t_start: float | None = None) -> list[Path]:

@@ -11,6 +11,12 @@ Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
   P_ne the filter's horizontal covariance; ``nees_mean`` is its mean over runs and samples (2 for a consistent
   filter; Bar-Shalom's NEES restricted to the horizontal position).
 * ``availability`` = fixes issued / fix attempts (Shockley sec. 4.3.2), pooled over runs.
+* ``fix_nees_mean``: mean over the issued fixes of their 2-D NEES against the truth, ``d^T R^-1 d`` with ``d`` the
+  fix's north/east error and ``R`` its own covariance (2 when the matcher's covariances are honest).
+* Protection level (the fuser's horizontal protection level ``hpl_m`` at its integrity risk, default 1e-3 per
+  epoch; :mod:`magnav_ins.aiding.fusion.integrity`): ``hpl_median_m`` its median over runs and samples,
+  ``hpl_exceedance`` the fraction of samples where the true horizontal error exceeds it (at most the integrity
+  risk when the protection level keeps its promise).
 * Fix error bins (Shockley Figs. 4.8-4.19): fractions of issued fixes whose error is < 3 m, 3-10 m, 10-20 m,
   >= 20 m; ``fix_within_3m_fraction`` is the first bin.
 * Divergence (Wang et al. 2022 sec. 4.3: "RMS position error becomes increasingly large over time without
@@ -20,6 +26,10 @@ Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
   same run over the same last quarter (the aiding has lost at least half of its benefit). The free-inertial
   baseline itself is tested against itself, so it "diverges" whenever its error doubles between the quarters.
   ``divergence_rate`` is the fraction of runs that diverge.
+
+* ``rms_after_first_fix_m``: the ensemble horizontal RMS from each run's first accepted fix on (the samples at or
+  after the time the fuser first applied a fix, pooled over the runs that had one; Storms 2009 Figs. 4.12-4.13 plot
+  the ensemble RMS "once the initial positioning error is resolved"); ``null`` when no run accepted a fix.
 
 Besides DESIGN.md's keys each entry holds ``fix_error_bins`` (the four bins above), ``fix_within_3m_fraction``,
 ``fix_attempts``, ``fixes_issued``, ``no_fix_reasons`` (how often each class of "no fix" reason occurred over all
@@ -124,11 +134,39 @@ class RunMetrics:
     fix_errors_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     fix_attempts: int = 0
     divergent: bool = False
+    first_fix_index: int | None = None
+    hpl_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))  # per sample (NaN: none), m
+    fix_nees: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))  # per issued fix
+
+
+def first_fix_index(t: ArrayLike, fix_t: ArrayLike, fix_accepted: ArrayLike) -> int | None:
+    """Index of the first sample of the time base ``t`` (s) at or after the first accepted fix (``fix_t`` s with
+    ``fix_accepted`` flags); None when no fix was accepted or the flags are unknown (empty)."""
+    ft = np.asarray(fix_t, float)
+    ok = np.asarray(fix_accepted, bool)
+    if ok.size == 0 or ok.size != ft.size or not ok.any():
+        return None
+    k = int(np.searchsorted(np.asarray(t, float), float(ft[ok].min()) - 1e-9, side="left"))
+    return k if k < len(np.asarray(t)) else None
+
+
+def hpl_statistics(e: ArrayLike, hpl: ArrayLike) -> tuple[float | None, float | None]:
+    """``(median HPL, fraction of samples where e > HPL)`` over the samples with a finite HPL (m); a non-finite
+    error (an estimator that blew up) counts as an exceedance. ``(None, None)`` without any HPL."""
+    e = np.asarray(e, float).reshape(-1)
+    h = np.asarray(hpl, float).reshape(-1)
+    ok = np.isfinite(h)
+    if h.size != e.size or not ok.any():
+        return None, None
+    with np.errstate(invalid="ignore"):
+        over = ~np.isfinite(e[ok]) | (e[ok] > h[ok])
+    return float(np.median(h[ok])), float(np.mean(over))
 
 
 def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[str, Any]:
-    """Pool one estimator's runs into the ``metrics.json`` entry (keys as in ``shared/DESIGN.md``)."""
-    E = np.stack([r.e for r in runs])  # (R, N)
+    """Pool one estimator's runs into the ``metrics.json`` entry (keys as in ``shared/DESIGN.md``). The runs may
+    have different lengths (runs of several cases pooled, as the real-data suite does)."""
+    E = np.concatenate([r.e for r in runs]) if runs else np.zeros(0)  # runs may differ in length (pooled cases)
     fin = np.isfinite(E)
     e_all = E[fin]
     nees = np.concatenate([r.nees for r in runs]) if runs else np.zeros(0)
@@ -137,7 +175,10 @@ def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[
     attempts = sum(r.fix_attempts for r in runs)
     issued = int(np.isfinite(fix_e).sum())
     bins = fix_error_bins(fix_e)
-    final = E[:, -1]
+    final = np.array([r.e[-1] if r.e.size else np.nan for r in runs])
+    hpl_med, hpl_exc = hpl_statistics(E, np.concatenate([_as_len(r.hpl_m, r.e.size) for r in runs]) if runs else E)
+    fix_nees = np.concatenate([r.fix_nees for r in runs]) if runs else np.zeros(0)
+    fix_nees = fix_nees[np.isfinite(fix_nees)]
     out: dict[str, Any] = {
         "matcher": matcher,
         "fusion": fusion,
@@ -150,11 +191,29 @@ def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[
         "fix_attempts": int(attempts),
         "fixes_issued": issued,
         "nees_mean": _f(np.mean(nees)) if nees.size else None,
+        "fix_nees_mean": _f(np.mean(fix_nees)) if fix_nees.size else None,
+        "hpl_median_m": None if hpl_med is None else _f(hpl_med),
+        "hpl_exceedance": hpl_exc,
         "fix_error_bins": {k: _f(v) for k, v in bins.items()},
         "fix_within_3m_fraction": _f(bins["lt_3m"]),
         "non_finite_fraction": float(1.0 - fin.mean()) if E.size else 0.0,
+        "rms_after_first_fix_m": _rms_after_first_fix(runs),
     }
     return out
+
+
+def _rms_after_first_fix(runs: list[RunMetrics]) -> float | None:
+    """``rms_after_first_fix_m`` (module docstring)."""
+    parts = [r.e[r.first_fix_index :] for r in runs if r.first_fix_index is not None]
+    e = np.concatenate(parts) if parts else np.zeros(0)
+    e = e[np.isfinite(e)]
+    return _f(np.sqrt(np.mean(e**2))) if e.size else None
+
+
+def _as_len(a: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """``a`` if it has ``n`` samples, else NaNs (a run without a protection level)."""
+    a = np.asarray(a, float)
+    return a if a.size == n else np.full(n, np.nan)
 
 
 def _f(x: Any) -> float | None:

@@ -2,7 +2,9 @@
 
 Per run (seed sequence ``ss``, see :mod:`.runner`), three independent generators are derived without mutating
 ``ss``: ``child(ss, 0)`` draws the IMU errors (``ins.imu_models.corrupt``), ``child(ss, 1)`` the initial INS errors,
-``child(ss, 2)`` the sensor noise; ``child(ss, 10 + j)`` is handed to estimator ``j`` (for randomised matchers).
+``child(ss, 2)`` the sensor noise; ``child(ss, 10 + j)`` is handed to estimator ``j`` (for randomised matchers);
+``child(ss, 3)`` draws the run's own truth where the trajectory wanders (a ``ground_path`` with ``wander``: Storms'
+random trajectories, then the ideal IMU is computed per run).
 An estimator with its own ``imu_grade`` other than ``[imu] grade`` flies an IMU corrupted with that grade's errors
 drawn from :func:`grade_seed` (``child(child(ss, 0), crc32(grade))``): derived from the run's seed and the grade's
 name only, so estimators of one grade share one draw and results do not depend on the estimator order or ``--jobs``.
@@ -72,6 +74,8 @@ def build_truth(sc: Scenario) -> NavTrajectory:
         elif tr.kind == "waypoints":
             pts = np.array([(la * DEG_TO_RAD, lo * DEG_TO_RAD, tr.altitude_m) for la, lo in tr.points_deg])  # type: ignore[union-attr]
             traj = simulate.waypoints(pts, tr.speed_mps, rate)
+        elif tr.kind == "ground_path":
+            traj = ground_path_truth(sc)
         elif tr.kind == "survey_line":
             line = survey_line_points(sc)
             if len(np.unique(line["line"])) > 1:
@@ -81,7 +85,10 @@ def build_truth(sc: Scenario) -> NavTrajectory:
                 traj = simulate.survey_line(line["lat"], line["lon"], line["h"], tr.speed_mps, rate)
         elif tr.kind == "lawnmower":
             turn = (tr.turn_rate_deg_s or LAWNMOWER_TURN_RATE_DEG_S) * DEG_TO_RAD
-            traj = simulate.waypoints(lawnmower_points(tr), tr.speed_mps, rate, turn_rate=turn)  # type: ignore[arg-type]
+            tau = tr.roll_time_constant_s or LAWNMOWER_ROLL_TIME_CONSTANT_S
+            traj = simulate.waypoints(
+                lawnmower_points(tr), tr.speed_mps, rate, turn_rate=turn, roll_time_constant_s=tau
+            )  # type: ignore[arg-type]
         else:
             traj = simulate.trajectory_from_csv(tr.path)  # type: ignore[arg-type]
     except MagnavError as exc:
@@ -92,8 +99,32 @@ def build_truth(sc: Scenario) -> NavTrajectory:
     return traj
 
 
+def ground_path_truth(sc: Scenario, rng: np.random.Generator | None = None) -> NavTrajectory:
+    """A ``ground_path`` trajectory (:func:`magnav_ins.ins.ground_path.ground_path`): the nominal path, or with
+    ``rng`` and a ``wander`` table one of Storms' random trajectories about it (drawn per run)."""
+    from ..ins.ground_path import Wander, ground_path
+
+    tr = sc.trajectory
+    la, lo = tr.origin_deg  # type: ignore[misc]
+    origin = (la * DEG_TO_RAD, lo * DEG_TO_RAD, float(tr.altitude_m or 0.0))
+    wander = Wander(**tr.wander) if (tr.wander is not None and rng is not None) else None
+    return ground_path(
+        tr.points_m,  # type: ignore[arg-type]
+        tr.speed_mps,  # type: ignore[arg-type]
+        sc.imu.rate_hz,
+        origin,
+        corner_radius_m=tr.corner_radius_m,
+        wander=wander,
+        rng=rng,
+    )
+
+
 #: default turn rate of a lawnmower flight between legs (deg/s; 3 deg/s = a rate-one turn)
 LAWNMOWER_TURN_RATE_DEG_S = 3.0
+#: default roll time constant of a lawnmower flight (s): a bank change of a large aircraft. With the 1 s of
+#: ``simulate.waypoints``' default, an INS sampled at 1-2 Hz cannot follow the roll-in of the turns: an ideal IMU at
+#: 1 Hz mechanised along the QLD flight ends 750 m off after 6000 s (2 Hz: 130 m); with 5 s, 83 m (2 Hz: 11 m)
+LAWNMOWER_ROLL_TIME_CONSTANT_S = 5.0
 
 
 def lawnmower_points(tr: Any) -> np.ndarray:
@@ -206,7 +237,9 @@ def build_map(sc: Scenario) -> Any:
     """The scenario's map: ``synthetic:random_field`` / ``synthetic:hallway`` (``maps.synthetic``, drawn from
     ``[map] options.seed``), a downloaded gravity grid when the options hold any of :data:`GRID_OPTIONS`
     (:func:`magnav_ins.studies.grids.read_gravity_grid`: ``unit``, ``altitude_m``, ``datum``, ``variable``,
-    ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load)."""
+    ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load). Options
+    ``error_sigma`` (map unit) and ``error_correlation_m`` (m, default two node spacings) attach a uniform error layer
+    (``GridMap.with_error_layer``): 0 when the study draws its readings from the map itself."""
     m = sc.map
     if m is None:
         raise ConfigError(f"{sc.source}: the scenario has no [map]")
@@ -253,6 +286,8 @@ def build_map(sc: Scenario) -> Any:
         )
     from ..maps import io as maps_io
 
+    err_sigma = opts.pop("error_sigma", None)
+    err_corr = opts.pop("error_correlation_m", None)
     try:
         if GRID_OPTIONS & set(opts):  # a downloaded gravity grid with an explicit unit (studies.grids)
             from .grids import read_gravity_grid
@@ -266,9 +301,17 @@ def build_map(sc: Scenario) -> Any:
                 fmap = read_gravity_grid(m.path, kind=m.kind, **opts)
             except TypeError as exc:
                 raise ConfigError(f"{sc.where('map.options')}: {exc}") from None
+            if m.error_sigma is not None:
+                fmap = maps_io.attach_error_layer(fmap, m.error_sigma, m.error_correlation_m, where=m.path)
         else:
             if m.path.lower().endswith(maps_io.SURVEY_SUFFIXES):
                 opts = {"kind": m.kind, **m.load_options(), **opts}
+            elif not m.path.startswith("builtin:"):  # a grid file: [map] kind says what a downloaded grid holds
+                opts = {"kind": m.kind, **m.grid_options(), **opts}
+            if (
+                m.error_sigma is not None
+            ):  # the user's uniform layer (a survey is then gridded without cross-validation)
+                opts = {"error_sigma": m.error_sigma, "error_correlation_m": m.error_correlation_m, **opts}
             fmap = maps_io.load_map(
                 m.path, grid_spacing_m=m.grid_spacing_m, exclude_lines=list(m.exclude_lines) or None, **opts
             )
@@ -278,6 +321,12 @@ def build_map(sc: Scenario) -> Any:
         raise ConfigError(f"{sc.where('map.path')}: {exc}") from None
     if fmap.kind is not m.kind:
         raise ConfigError(f"{sc.where('map.kind')}: the map holds {fmap.kind.value}, the scenario says {m.kind.value}")
+    if err_sigma is not None:  # a stated error layer (e.g. 0 when the study draws its readings from this very map)
+        try:
+            corr = float(err_corr) if err_corr is not None else 2.0 * float(min(fmap.spacing_m))
+            fmap = fmap.with_error_layer(float(err_sigma), corr, "stated in the scenario's [map] options")
+        except (MagnavError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{sc.where('map.options')}: error_sigma / error_correlation_m: {exc}") from None
     return fmap
 
 
@@ -300,6 +349,8 @@ def perturbed_init(sc: Scenario, truth: NavTrajectory, rng: np.random.Generator)
     s0 = truth.at(0)
     ic = sc.init
     dn, de = rng.normal(0.0, ic.position_sigma_m, 2)
+    if ic.position_offset_m is not None:  # a fixed offset (Storms Table 4.1); the draw above keeps the stream
+        dn, de = ic.position_offset_m
     dlat, dlon = meters_to_latlon(dn, de, s0.lat, s0.h)
     dv = rng.normal(0.0, ic.velocity_sigma_mps, 3)
     datt = rng.normal(0.0, 1.0, 3) * np.asarray(ic.attitude_sigma_deg) * DEG_TO_RAD
@@ -406,11 +457,18 @@ class PipelineModel:
         sc = self.scenario
         sh = self.shared()
         truth: NavTrajectory = sh["truth"]
+        ideal = sh["imu"]
+        if sc.trajectory.kind == "ground_path" and sc.trajectory.wander is not None:
+            # Storms' Monte Carlo: every run drives its own random trajectory about the nominal path
+            from ..ins.simulate import ideal_imu
+
+            truth = ground_path_truth(sc, np.random.default_rng(child(seed, 3)))
+            ideal = ideal_imu(truth)
         imus: dict[str, Any] = {}
         for g in (sc.imu.grade, *(e.imu_grade for e in sc.estimators if e.imu_grade)):
             if g not in imus:
                 rng_g = np.random.default_rng(grade_seed(seed, g, sc.imu.grade))
-                imus[g], _ = imu_models.corrupt(sh["imu"], imu_models.get_grade(g), rng_g)
+                imus[g], _ = imu_models.corrupt(ideal, imu_models.get_grade(g), rng_g)
         imu = imus[sc.imu.grade]
         init = perturbed_init(sc, truth, np.random.default_rng(child(seed, 1)))
         readings = None
@@ -541,6 +599,7 @@ def run_estimator(
     except MagnavError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     nav, P = res.trajectory, np.asarray(res.P)
+    P_online, t_online = P, nav.t
     if j is not None and sc.estimators[j].smooth and fkind == "graph":
         # offline: the batch LM solution re-integrated between its nodes, reported at t_out itself
         try:
@@ -554,6 +613,7 @@ def run_estimator(
     lat = np.interp(t_out, nav.t, nav.lat)
     lon = np.interp(t_out, nav.t, np.unwrap(nav.lon))
     cov = np.stack([np.interp(t_out, nav.t, P[:, a, b]) for a in range(2) for b in range(2)], -1).reshape(-1, 2, 2)
+    hpl = protection_levels(t_out, t_online, P_online, res.hpl_m, cov, res.integrity_risk)
     fixes = list(res.fixes)
     return EstimatorOutput(
         name,
@@ -568,4 +628,37 @@ def run_estimator(
         np.array([np.asarray(f.cov_ne, float) for f in fixes], float).reshape(-1, 2, 2),
         np.array([f.available for f in fixes], bool),
         tuple(f.reason for f in fixes),
+        fix_accepted=_accepted(fixes, list(res.innovations)),
+        hpl_m=hpl,
     )
+
+
+def _accepted(fixes: list[Any], innovations: list[Any]) -> np.ndarray:
+    """Per fix attempt, whether the fuser applied it (the pipeline records one innovation per fix, in order)."""
+    if len(innovations) != len(fixes):
+        return np.zeros(0, bool)
+    return np.array([bool(i.accepted) for i in innovations], bool)
+
+
+def protection_levels(
+    t_out: np.ndarray,
+    t_online: np.ndarray,
+    P_online: np.ndarray,
+    hpl_online: np.ndarray,
+    cov_out: np.ndarray,
+    integrity_risk: float,
+) -> np.ndarray | None:
+    """The estimator's horizontal protection level (m) at ``t_out`` (s): the fuser's online HPL (at ``t_online``,
+    with its covariances ``P_online`` (N,>=2,>=2) m^2) less its fault-free part ``K sigma_max``
+    (:func:`aiding.fusion.integrity.hpl_fault_free`), i.e. the fault-detection margin or doubt, interpolated, plus
+    ``K sigma_max`` of the reported covariance ``cov_out`` (n,2,2) (the smoothed one for a smoothed track, whose
+    fixes are the online filter's). None when the fuser gave no HPL."""
+    from ..aiding.fusion.integrity import hpl_fault_free
+
+    h = np.asarray(hpl_online, float)
+    if h.size == 0 or not np.isfinite(h).any() or len(t_online) != h.size:
+        return None
+    ff_online = np.array([hpl_fault_free(p[:2, :2], integrity_risk) for p in np.asarray(P_online)])
+    excess = np.maximum(h - ff_online, 0.0)
+    ff_out = np.array([hpl_fault_free(c, integrity_risk) for c in np.asarray(cov_out)])
+    return ff_out + np.interp(t_out, t_online, excess)

@@ -19,11 +19,17 @@ def _fmt(x: Any, digits: int = 1, pct: bool = False) -> str:
     return f"{x:.{digits}f}"
 
 
+def _pct(x: Any) -> str:
+    """A small fraction as a percentage with one decimal ("0.3 %")."""
+    return "–" if x is None else f"{100.0 * float(x):.1f} %"
+
+
 def metrics_table(doc: dict[str, Any]) -> str:
     """Markdown table: one row per estimator, the free-inertial baseline last."""
     head = (
         "| estimator | matcher | fusion | RMS (m) | mean (m) | max (m) | final (m) | diverged | availability "
-        "| fixes < 3 m | NEES (2-D) |\n|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+        "| fixes < 3 m | NEES (2-D) | fix NEES | HPL median (m) | HPL exceeded |\n"
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
     rows = []
     entries = list(doc["estimators"].items())
@@ -34,7 +40,9 @@ def metrics_table(doc: dict[str, Any]) -> str:
             f"| {name} | {m.get('matcher') or '–'} | {m.get('fusion')} | {_fmt(m['rms_horizontal_m'])} "
             f"| {_fmt(m['mean_horizontal_m'])} | {_fmt(m['max_horizontal_m'])} | {_fmt(m['final_horizontal_m'])} "
             f"| {_fmt(m['divergence_rate'], pct=True)} | {_fmt(m['availability'], pct=True)} "
-            f"| {_fmt(m['fix_within_3m_fraction'], pct=True)} | {_fmt(m['nees_mean'], 2)} |"
+            f"| {_fmt(m['fix_within_3m_fraction'], pct=True)} | {_fmt(m['nees_mean'], 2)} "
+            f"| {_fmt(m.get('fix_nees_mean'), 2)} | {_fmt(m.get('hpl_median_m'))} "
+            f"| {_pct(m.get('hpl_exceedance'))} |"
         )
     return head + "\n".join(rows) + "\n"
 
@@ -59,13 +67,18 @@ def markdown_report(doc: dict[str, Any], figures: list[str] | None = None, comma
     if command:
         parts.append(f"Reproduce: `{command}`\n")
     parts.append(metrics_table(doc))
+    if doc.get("warnings"):
+        parts.append("\n**Warnings**\n\n" + "".join(f"- {w}\n" for w in doc["warnings"]))
     fb = fix_bins_table(doc)
     if fb:
         parts.append("\nFix errors (fraction of issued fixes per bin):\n\n" + fb)
     parts.append(
         "\nErrors are horizontal (m), pooled over runs and samples; *final* is the RMS over runs at the last "
         "sample; *availability* = fixes issued / fix attempts; NEES is the horizontal 2-D NEES (2 when "
-        f"consistent). A run *diverges* when its mean error over the last quarter exceeds {DIVERGENCE_GROWTH:g}x "
+        "consistent), *fix NEES* the same for the issued fixes against the truth with their own covariances; "
+        "*HPL* is the fuser's horizontal protection level (integrity risk 1e-3 per epoch unless the fusion sets "
+        "`integrity_risk`), *HPL exceeded* the share of samples where the true error was larger. "
+        f"A run *diverges* when its mean error over the last quarter exceeds {DIVERGENCE_GROWTH:g}x "
         f"its mean over the second quarter and {DIVERGENCE_FRACTION_OF_FREE:g}x the free-inertial mean over the "
         "last quarter of the same run (Wang et al. 2022: error growing without apparent bound).\n"
     )

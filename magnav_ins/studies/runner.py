@@ -31,8 +31,9 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.atomic import atomic_path, write_text_atomic
-from ..core.errors import ConfigError
+from ..core.atomic import atomic_path, check_output_dir, write_text_atomic
+from ..core.errors import ConfigError, OutputError
+from ..core.signals import deferred
 from ..core.units import RAD_TO_DEG
 from . import metrics as M
 from .scenario import FREE_INERTIAL
@@ -49,7 +50,7 @@ class EstimatorOutput:
     ``lat``, ``lon`` (N,) rad; ``cov_ne`` (N,2,2) m^2 horizontal covariance or None (free inertial without a
     filter). Fixes: ``fix_t`` (K,) s, ``fix_lat``, ``fix_lon`` (K,) rad (NaN for "no fix"), ``fix_cov_ne``
     (K,2,2) m^2, ``fix_available`` (K,) bool, ``fix_reason`` (K,) the reason of each "no fix" ("" for a fix); one
-    entry per fix attempt.
+    entry per fix attempt. ``fix_accepted`` (K,) bool: whether the fuser applied each fix (empty when unknown).
     """
 
     name: str
@@ -64,6 +65,8 @@ class EstimatorOutput:
     fix_cov_ne: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2, 2)))
     fix_available: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
     fix_reason: tuple[str, ...] = ()
+    fix_accepted: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    hpl_m: NDArray[np.float64] | None = None  # (N,) horizontal protection level, m (None: none given)
 
 
 @dataclass(frozen=True)
@@ -108,6 +111,7 @@ class EstimatorSummary:
     fix_corr_ne: NDArray[np.float32]
     fix_available: NDArray[np.bool_]
     no_fix_reasons: dict[str, int] = field(default_factory=dict)
+    hpl: NDArray[np.float32] | None = None
 
 
 def reason_category(reason: str) -> str:
@@ -174,12 +178,17 @@ def summarise_run(
         else:
             fdn = fde = np.zeros(0)
         fsn, fse, frho = _cov_parts(np.asarray(est.fix_cov_ne, float), len(fix_t))
+        hpl = None if est.hpl_m is None else np.asarray(est.hpl_m, float)[sel]
+        fix_nees = M.nees_ne(fdn, fde, np.asarray(est.fix_cov_ne, float))[fix_avail] if len(fix_t) else np.zeros(0)
         rm = M.RunMetrics(
             e=e,
             nees=nees,
             fix_errors_m=np.hypot(fdn, fde)[fix_avail] if len(fix_t) else np.zeros(0),
             fix_attempts=len(fix_t),
             divergent=M.is_divergent(e, e_free),
+            first_fix_index=M.first_fix_index(t, fix_t, np.asarray(est.fix_accepted, bool)),
+            hpl_m=hpl if hpl is not None else np.full(len(sel), np.nan),
+            fix_nees=fix_nees,
         )
         sn, se, rho = _cov_parts(cov, len(sel))
         reasons: dict[str, int] = {}
@@ -190,6 +199,7 @@ def summarise_run(
         res[est.name] = EstimatorSummary(
             est.matcher, est.fusion, rm, dn.astype(np.float32), de.astype(np.float32), sn, se, rho,
             fix_t, fdn.astype(np.float32), fde.astype(np.float32), fsn, fse, frho, fix_avail, reasons,
+            None if hpl is None else hpl.astype(np.float32),
         )  # fmt: skip
     return RunSummary(index, t, lat_t, lon_t, res, wall_s)
 
@@ -338,8 +348,31 @@ def _execute_dask(
 
 
 # ------------------------------------------------------------------------------------------------ aggregation
-def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: str = "") -> dict[str, Any]:
-    """The ``metrics.json`` document (see :mod:`.metrics` for the definitions)."""
+def fix_warnings(doc: dict[str, Any]) -> list[str]:
+    """One line per estimator with a matcher that never got a fix: no attempt at all, or attempts that all ended
+    in "no fix" (with their counted reasons, as the replay summary gives them)."""
+    out: list[str] = []
+    for name, m in doc["estimators"].items():
+        if m.get("matcher") is None:
+            continue
+        attempts, issued = m.get("fix_attempts", 0), m.get("fixes_issued", 0)
+        if attempts == 0:
+            out.append(
+                f"estimator {name!r}: no fix attempt in {doc['runs']} run(s) (no reading on the map, or fewer "
+                "readings than the matcher's window): it ran unaided"
+            )
+        elif issued == 0:
+            counts = sorted((m.get("no_fix_reasons") or {}).items(), key=lambda rn: -rn[1])
+            why = "; ".join(f"{r} x{n}" for r, n in counts) or "no reason given"
+            out.append(f"estimator {name!r}: 0 of {attempts} fix attempts gave a fix ({why}): it ran unaided")
+    return out
+
+
+def study_metrics(
+    summaries: list[RunSummary], seed: int, wall_s: float, name: str = "", warnings: Sequence[str] = ()
+) -> dict[str, Any]:
+    """The ``metrics.json`` document (see :mod:`.metrics` for the definitions). ``warnings``: lines found before
+    the runs (e.g. a trajectory that never crosses the map); :func:`fix_warnings` adds its own."""
     names = list(summaries[0].estimators)
     doc: dict[str, Any] = {
         "name": name,
@@ -361,6 +394,7 @@ def study_metrics(summaries: list[RunSummary], seed: int, wall_s: float, name: s
             doc["free_inertial"] = entry
         else:
             doc["estimators"][nm] = entry
+    doc["warnings"] = [*warnings, *fix_warnings(doc)]
     return doc
 
 
@@ -384,6 +418,12 @@ def runs_dataset(summaries: list[RunSummary], scenario_name: str = ""):
                 arr[i, j, : len(v)] = v
         return arr
 
+    def stack_hpl() -> NDArray:
+        nan = np.full(len(s0.t), np.nan, np.float32)
+        return np.stack(
+            [np.stack([nan if (h := s.estimators[n].hpl) is None else h for n in names]) for s in summaries]
+        )
+
     dims = ("run", "estimator", "time")
     fdims = ("run", "estimator", "fix")
     ds = xr.Dataset(
@@ -402,6 +442,7 @@ def runs_dataset(summaries: list[RunSummary], scenario_name: str = ""):
             "fix_sigma_east_m": (fdims, stack_fix("fix_sigma_e", np.nan, np.float32)),
             "fix_corr_ne": (fdims, stack_fix("fix_corr_ne", np.nan, np.float32)),
             "fix_available": (fdims, stack_fix("fix_available", 0, np.int8)),
+            "hpl_m": (dims, stack_hpl()),
             "divergent": (
                 ("run", "estimator"),
                 np.array([[s.estimators[n].metrics.divergent for n in names] for s in summaries], np.int8),
@@ -414,8 +455,17 @@ def runs_dataset(summaries: list[RunSummary], scenario_name: str = ""):
         },
         attrs={"title": f"magnav-ins run: {scenario_name}", "conventions": "errors are estimate minus truth, NED"},
     )
-    for v in ("err_north_m", "err_east_m", "sigma_north_m", "sigma_east_m", "fix_err_north_m", "fix_err_east_m"):
+    for v in (
+        "err_north_m",
+        "err_east_m",
+        "sigma_north_m",
+        "sigma_east_m",
+        "fix_err_north_m",
+        "fix_err_east_m",
+        "hpl_m",
+    ):
         ds[v].attrs["units"] = "m"
+    ds["hpl_m"].attrs["long_name"] = "horizontal protection level at the fuser's integrity risk (default 1e-3)"
     return ds
 
 
@@ -437,9 +487,14 @@ def write_outputs(
     from . import plots as P
     from . import reports
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    out = check_output_dir(out_dir, option=None)
+    created = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(prefix=".staging-", dir=out))
+    except OSError as exc:
+        raise OutputError(f"{out}: cannot create the output folder ({exc.strerror or exc})") from None
+    ok = False
     try:
         ds = runs_dataset(summaries, doc.get("name", ""))
         with atomic_path(stage / "runs.nc") as tmp:
@@ -449,13 +504,18 @@ def write_outputs(
         write_text_atomic(stage / "metrics.json", json.dumps(doc, indent=2, allow_nan=False) + "\n")
         names = ["runs.nc", *(f.name for f in figures), "report.md", "metrics.json"]  # metrics.json last
         written = []
-        for name in names:
-            os.chmod(stage / name, 0o644)
-            os.replace(stage / name, out / name)
-            written.append(out / name)
+        with deferred():  # a signal lands before or after the whole set is moved into place, not half-way
+            for name in names:
+                os.chmod(stage / name, 0o644)
+                os.replace(stage / name, out / name)
+                written.append(out / name)
+        ok = True
         return written
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+        if created and not ok:
+            with contextlib.suppress(OSError):
+                out.rmdir()  # only if empty: the folder this call made for outputs that never came
 
 
 def run_study(
@@ -470,11 +530,13 @@ def run_study(
     fmap: Any = None,
     max_samples: int = DEFAULT_MAX_SAMPLES,
     command: str | None = None,
+    warnings: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Execute the study and (if ``out_dir``) write its outputs. Returns the ``metrics.json`` document."""
+    """Execute the study and (if ``out_dir``) write its outputs. Returns the ``metrics.json`` document (with
+    ``warnings``: the given lines and :func:`fix_warnings`)."""
     t0 = time.perf_counter()
     summaries = execute(model, runs, seed, jobs, scheduler, quiet, max_samples)
-    doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name)
+    doc = study_metrics(summaries, seed, time.perf_counter() - t0, model.name, warnings)
     bound = getattr(model, "crlb_metrics", None)
     if callable(bound):  # the flight's posterior CRLB, the limit column of the comparisons (studies.crlb)
         doc.update(bound())

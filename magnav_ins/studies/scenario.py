@@ -1,4 +1,5 @@
-"""Scenario files: TOML -> validated, frozen configuration dataclasses (schema in ``shared/DESIGN.md``).
+"""Scenario files: TOML -> validated, frozen configuration dataclasses (every key in :data:`SCHEMA`, rendered as
+``docs/scenarios.md`` by :mod:`.scenario_doc`).
 
 Every mistake raises :class:`~magnav_ins.core.errors.ConfigError` naming the file, the line, the key and what was
 expected: unknown keys, missing keys, wrong types, out-of-range values (units are in the key names: ``_m``, ``_s``,
@@ -28,7 +29,9 @@ from ..core.types import FieldKind
 
 #: IMU grades understood by ``ins.imu_models.get_grade`` (Storms Table 2.2; Wang Table 1)
 IMU_GRADES = ("consumer", "commercial", "tactical", "navigation", "precision", "quantum")
-TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file", "lawnmower")
+TRAJECTORY_KINDS = ("great_circle", "waypoints", "survey_line", "file", "lawnmower", "ground_path")
+#: keys of a ground path's ``wander`` table (:class:`magnav_ins.ins.ground_path.Wander`)
+WANDER_KEYS = ("accel_sigma_mps2", "cross_gain", "along_gain", "max_offset_m")
 SENSOR_KINDS = {
     "gravimeter": FieldKind.GRAVITY_DISTURBANCE_MGAL,
     "scalar_magnetometer": FieldKind.TOTAL_FIELD_ANOMALY_NT,
@@ -39,6 +42,481 @@ SENSOR_SOURCES = ("simulated", "survey")
 FREE_INERTIAL = "free_inertial"
 #: specs that are not file paths
 SPEC_PREFIXES = ("builtin:", "synthetic:")
+
+
+# --------------------------------------------------------------------------------------------- key tables
+@dataclass(frozen=True)
+class ScenarioKey:
+    """One scenario key: where it lives (``table``: ``""`` for the top level, ``"trajectory"``, ``"estimator"`` for
+    every ``[[estimator]]``), its TOML type, whether it is required (``default`` = :data:`REQUIRED`) or its default,
+    and for numbers the accepted range (``lo`` / ``hi``; ``lo_open`` excludes ``lo``) with the reason for it.
+    ``kinds``: the trajectory kinds a ``[trajectory]`` key belongs to (empty: every kind). This table is the
+    documented schema (``docs/scenarios.md`` is generated from it by :func:`schema_markdown`, and a test checks
+    that every key the validator accepts is in it); the validators take their ranges from it."""
+
+    table: str
+    name: str
+    type: str
+    doc: str
+    default: Any = None
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    why: str = ""
+    kinds: tuple[str, ...] = ()
+
+    @property
+    def path(self) -> str:
+        return f"{self.table}.{self.name}" if self.table else self.name
+
+    @property
+    def range_text(self) -> str:
+        def num(x: float) -> str:
+            return f"{int(x)}" if float(x).is_integer() and abs(x) < 1e9 else f"{x:g}"
+
+        if self.lo is None and self.hi is None:
+            return ""
+        if self.lo is not None and self.hi is not None:
+            return f"{'(' if self.lo_open else '['}{num(self.lo)}, {num(self.hi)}]"
+        if self.lo is not None:
+            return f"> {num(self.lo)}" if self.lo_open else f">= {num(self.lo)}"
+        return f"<= {num(self.hi)}"  # type: ignore[arg-type]
+
+
+#: marks a required key in :data:`SCHEMA`
+REQUIRED = "(required)"
+#: IMU rates accepted (Hz): Wang runs the INS at 1 Hz; 2 kHz is above any strapdown IMU's output rate
+IMU_RATE_RANGE_HZ = (1.0, 2000.0)
+#: IMU samples one run may hold (truth, ideal and corrupted IMU, the fusers' buffers: a few hundred bytes each)
+MAX_IMU_SAMPLES_PER_RUN = 2e7
+#: Monte Carlo runs one study may ask for
+MAX_RUNS = 100_000
+
+#: largest reading noise (1-sigma, the kind's unit) accepted per kind: above it the noise exceeds the whole signal
+#: (gravity disturbances span a few hundred mGal, crustal anomalies a few thousand nT)
+SENSOR_SIGMA_MAX = {
+    FieldKind.GRAVITY_DISTURBANCE_MGAL: 1_000.0,
+    FieldKind.TOTAL_FIELD_ANOMALY_NT: 10_000.0,
+    FieldKind.VECTOR_FIELD_NT: 100_000.0,
+}
+
+
+SCHEMA: tuple[ScenarioKey, ...] = (
+    # top level
+    ScenarioKey("", "name", "string", "study name (the default output folder is runs/NAME)", REQUIRED),
+    ScenarioKey("", "description", "string", "free text, copied into the report", ""),
+    ScenarioKey("", "seed", "integer", "master seed; run i uses SeedSequence(seed).spawn(runs)[i]", 0, lo=0),
+    ScenarioKey("", "runs", "integer", "Monte Carlo runs (--runs overrides)", 1, lo=1, hi=MAX_RUNS),
+    ScenarioKey("", "trajectory", "table", "the truth trajectory", REQUIRED),
+    ScenarioKey("", "imu", "table", "the IMU", REQUIRED),
+    ScenarioKey("", "init", "table", "initial INS errors (1-sigma, drawn per run)", "see [init]"),
+    ScenarioKey("", "map", "table", "the map the matchers use (required with any matcher)", None),
+    ScenarioKey("", "sensor", "table", "the field sensor (required with any matcher)", None),
+    ScenarioKey(
+        "",
+        "estimator",
+        "array of tables",
+        "the estimators ([[estimator]], one or more)",
+        "none: the free-inertial baseline only",
+    ),
+    # [trajectory]
+    ScenarioKey("trajectory", "kind", "string", "one of " + ", ".join(TRAJECTORY_KINDS), REQUIRED),
+    ScenarioKey("trajectory", "start", "[lat, lon] deg", "start point", REQUIRED, kinds=("great_circle", "lawnmower")),
+    ScenarioKey("trajectory", "end", "[lat, lon] deg", "end point", REQUIRED, kinds=("great_circle",)),
+    ScenarioKey(
+        "trajectory", "points", "[[lat, lon], ...] deg", "at least two waypoints", REQUIRED, kinds=("waypoints",)
+    ),
+    ScenarioKey(
+        "trajectory",
+        "altitude_m",
+        "number",
+        "ellipsoidal height, m",
+        REQUIRED,
+        lo=-11000.0,
+        hi=1e5,
+        why="from the deepest ocean to the edge of space",
+        kinds=("great_circle", "waypoints", "lawnmower"),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "speed_mps",
+        "number",
+        "ground speed, m/s",
+        REQUIRED,
+        lo=0.0,
+        hi=3000.0,
+        lo_open=True,
+        why="above Mach 8 nothing navigates by maps",
+        kinds=("great_circle", "waypoints", "survey_line", "lawnmower", "ground_path"),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "origin",
+        "[lat, lon] deg",
+        "origin of a ground path's local plane",
+        REQUIRED,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "points_m",
+        "[[north, east], ...] m",
+        "at least two corner points about the origin (a walk, a hallway route)",
+        REQUIRED,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "altitude_m",
+        "number",
+        "ellipsoidal height of a ground path, m",
+        0.0,
+        lo=-11000.0,
+        hi=1e5,
+        why="from the deepest ocean to the edge of space",
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "corner_radius_m",
+        "number",
+        "radius of the rounded corners, m",
+        1.0,
+        lo=0.0,
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "wander",
+        "table",
+        "random walk about the path { " + ", ".join(WANDER_KEYS) + " } (magnav_ins.ins.ground_path.Wander)",
+        "{}",
+        kinds=("ground_path",),
+    ),
+    ScenarioKey(
+        "trajectory", "survey", "string", "survey CSV(.xz) path or builtin:NAME", REQUIRED, kinds=("survey_line",)
+    ),
+    ScenarioKey(
+        "trajectory",
+        "line",
+        "integer or list",
+        "survey line id, or ids flown one after the other",
+        "(line or line_type is required)",
+        kinds=("survey_line",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "line_type",
+        "string",
+        'fly every line of this type (e.g. "TIE"), in id order (with line: those of the listed lines)',
+        None,
+        kinds=("survey_line",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "columns",
+        "table",
+        'survey column mapping { our_name = "file column" } (maps.io.SURVEY_COLUMNS)',
+        None,
+        kinds=("survey_line",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "geoid_m",
+        "number",
+        "geoid undulation for the survey's orthometric heights, m",
+        "the shipped EIGEN-6C4 geoid",
+        lo=-150.0,
+        hi=150.0,
+        why="the geoid stays within -107..+86 m of the ellipsoid",
+        kinds=("survey_line",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "heading_deg",
+        "number",
+        "heading of the first leg, deg",
+        REQUIRED,
+        lo=-360.0,
+        hi=360.0,
+        kinds=("lawnmower",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "leg_length_m",
+        "number",
+        "length of each leg, m",
+        REQUIRED,
+        lo=0.0,
+        hi=1e7,
+        lo_open=True,
+        kinds=("lawnmower",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "leg_spacing_m",
+        "number",
+        "distance between legs (the next to the right), m",
+        REQUIRED,
+        lo=0.0,
+        hi=1e6,
+        lo_open=True,
+        kinds=("lawnmower",),
+    ),
+    ScenarioKey("trajectory", "legs", "integer", "legs per pass", REQUIRED, lo=1, hi=1e5, kinds=("lawnmower",)),
+    ScenarioKey(
+        "trajectory",
+        "turn_rate_deg_s",
+        "number",
+        "turn rate between legs, deg/s",
+        3.0,
+        lo=0.0,
+        hi=30.0,
+        lo_open=True,
+        why="a rate-two turn is 6 deg/s",
+        kinds=("lawnmower",),
+    ),
+    ScenarioKey(
+        "trajectory",
+        "roll_time_constant_s",
+        "number",
+        "time constant of the roll into and out of a turn, s",
+        5.0,
+        lo=0.0,
+        lo_open=True,
+        kinds=("lawnmower",),
+    ),
+    ScenarioKey("trajectory", "path", "string", "trajectory CSV path", REQUIRED, kinds=("file",)),
+    ScenarioKey(
+        "trajectory",
+        "duration_s",
+        "number",
+        "truncate the trajectory to this many seconds (--duration)",
+        "the whole trajectory",
+        lo=0.0,
+        hi=1e7,
+        lo_open=True,
+        why="at most about 4 months",
+    ),
+    # [imu]
+    ScenarioKey("imu", "grade", "string", "one of " + ", ".join(IMU_GRADES), REQUIRED),
+    ScenarioKey(
+        "imu",
+        "rate_hz",
+        "number",
+        "IMU and INS sample rate, Hz",
+        100.0,
+        lo=IMU_RATE_RANGE_HZ[0],
+        hi=IMU_RATE_RANGE_HZ[1],
+        why="strapdown IMUs output 1 Hz (Wang) to 2 kHz",
+    ),
+    # [init]
+    ScenarioKey(
+        "init",
+        "position_sigma_m",
+        "number",
+        "north and east position 1-sigma, m",
+        10.0,
+        lo=0.0,
+        hi=1e5,
+        why="beyond 100 km the fusers' linearisation does not hold",
+    ),
+    ScenarioKey("init", "velocity_sigma_mps", "number", "velocity 1-sigma per NED axis, m/s", 0.1, lo=0.0, hi=100.0),
+    ScenarioKey(
+        "init",
+        "attitude_sigma_deg",
+        "[roll, pitch, yaw] deg",
+        "attitude 1-sigmas, deg",
+        "[0.02, 0.02, 0.2]",
+        lo=0.0,
+        hi=30.0,
+        why="the error model assumes small attitude errors",
+    ),
+    ScenarioKey(
+        "init",
+        "position_offset_m",
+        "[north, east] m",
+        "a fixed initial position error instead of a random draw (Storms Table 4.1)",
+        None,
+    ),
+    # [map]
+    ScenarioKey("map", "path", "string", "NetCDF grid, survey CSV(.xz), builtin:NAME or synthetic:NAME", REQUIRED),
+    ScenarioKey("map", "kind", "string", "one of " + ", ".join(k.value for k in FieldKind), REQUIRED),
+    ScenarioKey(
+        "map",
+        "grid_spacing_m",
+        "number",
+        "grid a survey CSV at this spacing on load, m",
+        None,
+        lo=0.0,
+        hi=1e5,
+        lo_open=True,
+    ),
+    ScenarioKey("map", "exclude_lines", "list of integers", "survey lines left out of the map", "[]"),
+    ScenarioKey("map", "options", "table", "options of a synthetic map (seed, origin_deg, shape, ...)", "{}"),
+    ScenarioKey("map", "columns", "table", 'survey column mapping { our_name = "file column" } (survey CSV)', None),
+    ScenarioKey(
+        "map",
+        "geoid_m",
+        "number",
+        "geoid undulation for a survey's orthometric heights, m",
+        "the shipped EIGEN-6C4 geoid",
+        lo=-150.0,
+        hi=150.0,
+        why="the geoid stays within -107..+86 m of the ellipsoid",
+    ),
+    ScenarioKey("map", "line_type", "string", 'grid only the survey lines of this type (e.g. "LINE")', None),
+    ScenarioKey("map", "exclude_line_type", "string", 'leave out the survey lines of this type (e.g. "TIE")', None),
+    ScenarioKey(
+        "map",
+        "error_sigma",
+        "number",
+        "a uniform map error layer: 1-sigma map error in the map's unit",
+        None,
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "error_correlation_m",
+        "number",
+        "correlation length of error_sigma, m (with error_sigma)",
+        None,
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "unit",
+        "string",
+        "unit of a downloaded grid's values if the file states none or an impossible one (nT; mGal, um/s^2, m/s^2)",
+        None,
+    ),
+    ScenarioKey("map", "altitude_m", "number", "ellipsoidal height of a downloaded grid's surface, m", None),
+    ScenarioKey(
+        "map", "datum", "string", "datum of a downloaded latitude/longitude grid that does not say (WGS84)", None
+    ),
+    ScenarioKey(
+        "map", "crs", "string", "CRS of a downloaded grid in metres that does not say (EPSG:NNNN, PROJ, WKT)", None
+    ),
+    ScenarioKey("map", "variable", "string", "the data variable of a file holding several grids", None),
+    ScenarioKey("map", "reproject", "boolean", "resample a projected grid onto latitude/longitude", False),
+    ScenarioKey(
+        "map",
+        "allow_implausible",
+        "boolean",
+        "accept map values implausible for the map's kind (e.g. full gravity as a disturbance)",
+        False,
+    ),
+    ScenarioKey(
+        "map",
+        "error_sigma",
+        "number",
+        "give the map a uniform error layer: 1-sigma map error in the map's unit (with error_correlation_m)",
+        "the map's own layer, else the matchers' stated default",
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "error_correlation_m",
+        "number",
+        "correlation length of the map error given by error_sigma, m",
+        None,
+        lo=0.0,
+        lo_open=True,
+    ),
+    ScenarioKey(
+        "map",
+        "unit",
+        "string",
+        "unit of a downloaded grid's values if the file states none or a wrong one (nT; mGal, um/s^2, m/s^2)",
+        None,
+    ),
+    ScenarioKey("map", "altitude_m", "number", "ellipsoidal height of a downloaded grid's surface, m", None),
+    ScenarioKey("map", "datum", "string", "geodetic datum of a downloaded grid that does not say (WGS84)", None),
+    ScenarioKey(
+        "map", "crs", "string", "CRS of a downloaded grid in metres that does not say (EPSG:NNNN, PROJ or WKT)", None
+    ),
+    ScenarioKey("map", "variable", "string", "the data variable of a file holding several grids", None),
+    ScenarioKey("map", "reproject", "boolean", "resample a projected grid onto latitude/longitude", False),
+    # [sensor]
+    ScenarioKey("sensor", "kind", "string", "one of " + ", ".join(SENSOR_KINDS), REQUIRED),
+    ScenarioKey(
+        "sensor",
+        "sigma",
+        "number",
+        "reading noise 1-sigma, in the map's unit",
+        REQUIRED,
+        lo=0.0,
+        lo_open=True,
+        why="and at most " + ", ".join(f"{v:g} {k.unit} ({k.value})" for k, v in SENSOR_SIGMA_MAX.items()),
+    ),
+    ScenarioKey(
+        "sensor",
+        "interval_s",
+        "number",
+        "seconds between readings",
+        REQUIRED,
+        lo=0.0,
+        hi=86400.0,
+        lo_open=True,
+        why="and at least one IMU period",
+    ),
+    ScenarioKey("sensor", "source", "string", "one of " + ", ".join(SENSOR_SOURCES), "simulated"),
+    # [[estimator]]
+    ScenarioKey("estimator", "name", "string", "unique; 'free_inertial' is reserved for the baseline", REQUIRED),
+    ScenarioKey(
+        "estimator",
+        "matcher",
+        "inline table",
+        "{ kind = ..., options } (matcher kinds below)",
+        "(required unless fusion is free_inertial)",
+    ),
+    ScenarioKey("estimator", "fusion", "inline table", "{ kind = ..., options } (fusion kinds below)", REQUIRED),
+    ScenarioKey(
+        "estimator",
+        "window",
+        "integer",
+        "readings per batch-matcher window",
+        "the matcher's batch, else 1",
+        lo=1,
+        hi=1e6,
+    ),
+    ScenarioKey(
+        "estimator",
+        "match_every",
+        "integer",
+        "readings between match attempts",
+        "the matcher's batch, else 1",
+        lo=1,
+        hi=1e6,
+    ),
+    ScenarioKey(
+        "estimator",
+        "smooth",
+        "integer",
+        "0: the causal track; N >= 1: the smoothed track (ukf, graph)",
+        0,
+        lo=0,
+        hi=100,
+    ),
+    ScenarioKey("estimator", "imu_grade", "string", "this estimator's own IMU grade", "[imu] grade"),
+)
+
+
+def _by_path(keys: tuple[ScenarioKey, ...]) -> dict[str, ScenarioKey]:
+    """Key path -> entry. A key documented once per trajectory kind (``altitude_m``) is range-checked by the first
+    of its entries that states a range."""
+    out: dict[str, ScenarioKey] = {}
+    for k in keys:
+        old = out.get(k.path)
+        if old is None or (old.lo is None and old.hi is None and (k.lo is not None or k.hi is not None)):
+            out[k.path] = k
+    return out
+
+
+_SCHEMA_BY_PATH = _by_path(SCHEMA)
 
 
 # --------------------------------------------------------------------------------------------- line scan
@@ -101,14 +579,17 @@ class TrajectoryConfig:
     ``kind``: ``great_circle`` (``start``, ``end`` [lat, lon] deg, ``altitude_m``, ``speed_mps``), ``waypoints``
     (``points`` [[lat, lon], ...] deg, ``altitude_m``, ``speed_mps``), ``survey_line`` (``survey`` path or
     ``builtin:NAME``, ``line`` id or list of ids, ``speed_mps``; altitude from the survey), ``file`` (``path``
-    CSV). ``duration_s`` (optional) truncates the trajectory. ``lines`` holds every line id of a ``survey_line``
+    CSV), ``ground_path`` (``origin`` [lat, lon] deg, ``points_m`` [[north, east], ...] m about it,
+    ``speed_mps``, optional ``altitude_m``, ``corner_radius_m`` and ``wander`` = Storms' random perturbation per run,
+    :mod:`magnav_ins.ins.ground_path`). ``duration_s`` (optional) truncates the trajectory. ``lines`` holds every line id of a ``survey_line``
     flight in flying order (``line`` is the first); several lines are flown one after the other, as a survey
     aircraft flies adjacent lines (:func:`magnav_ins.studies.model.survey_line_points`). A ``survey_line`` may
     instead (or as well) name a ``line_type`` (e.g. ``"TIE"``): every line of that type, in id order (with ``line``:
     those of the listed lines); ``columns`` maps our survey column names to the file's
     (:func:`magnav_ins.maps.io.read_survey`), ``geoid_m`` replaces the shipped geoid for orthometric heights. ``lawnmower`` (``start``
     [lat, lon] deg, ``heading_deg`` of the first leg, ``leg_length_m``, ``leg_spacing_m``, ``legs``, ``altitude_m``,
-    ``speed_mps``, optional ``turn_rate_deg_s``, default 3): parallel legs joined by turns, each next leg
+    ``speed_mps``, optional ``turn_rate_deg_s``, default 3, and ``roll_time_constant_s``, default 5): parallel legs
+    joined by turns, each next leg
     ``leg_spacing_m`` to the right, the pattern flown back and forth until ``duration_s``
     (:func:`magnav_ins.studies.model.lawnmower_points`): a long flight folded into one map tile.
     """
@@ -129,9 +610,14 @@ class TrajectoryConfig:
     leg_spacing_m: float | None = None
     legs: int | None = None
     turn_rate_deg_s: float | None = None
+    roll_time_constant_s: float | None = None
     line_type: str | None = None
     columns: tuple[tuple[str, str], ...] = ()
     geoid_m: float | None = None
+    origin_deg: tuple[float, float] | None = None
+    points_m: tuple[tuple[float, float], ...] | None = None
+    corner_radius_m: float = 1.0
+    wander: dict[str, float] | None = field(default=None, compare=False)
 
     def survey_options(self) -> dict[str, Any]:
         """Keyword arguments for :func:`magnav_ins.maps.io.read_survey` (column mapping, geoid override)."""
@@ -154,11 +640,14 @@ class ImuConfig:
 @dataclass(frozen=True)
 class InitConfig:
     """1-sigma initial INS errors drawn per run (the same draw for every estimator and the baseline).
-    Defaults: a tactical INS that has just lost GNSS (DESIGN.md)."""
+    Defaults: a tactical INS that has just lost GNSS (DESIGN.md). ``position_offset_m`` = (north, east) m: a fixed
+    initial position error instead of a drawn one (Storms Table 4.1: the filter starts 1.145 m beside the vehicle);
+    ``position_sigma_m`` stays the filters' initial 1-sigma."""
 
     position_sigma_m: float = 10.0
     velocity_sigma_mps: float = 0.1
     attitude_sigma_deg: tuple[float, float, float] = (0.02, 0.02, 0.2)  # roll, pitch, yaw
+    position_offset_m: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -167,7 +656,13 @@ class MapConfig:
     (``grid_spacing_m``, ``exclude_lines``). ``kind`` is a :class:`FieldKind` value. ``options`` holds extra
     keys for synthetic maps (e.g. ``seed``). For a survey: ``columns`` (our name -> the file's column),
     ``geoid_m`` (geoid undulation for orthometric heights; default the shipped geoid), ``line_type`` (grid only
-    the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``)."""
+    the lines of that type, e.g. ``"LINE"``), ``exclude_line_type`` (leave those out, e.g. ``"TIE"``). Any map:
+    ``error_sigma`` (1-sigma map error, map unit) with ``error_correlation_m`` (m) gives it a uniform error layer
+    (for a map that has none; it replaces one the map has). A grid file as downloaded (GeoTIFF, ER Mapper, GXF, GMT /
+    COARDS / CF NetCDF; :mod:`magnav_ins.maps.formats`): ``unit`` (the values' unit if the file states none or an
+    impossible one), ``altitude_m`` (ellipsoidal m), ``datum``, ``crs`` (of a grid in metres that does not say),
+    ``variable``, ``reproject`` (onto latitude/longitude instead of the grid's own projection).
+    ``allow_implausible``: accept values implausible for ``kind`` (:mod:`magnav_ins.core.plausibility`)."""
 
     path: str
     kind: FieldKind
@@ -178,6 +673,27 @@ class MapConfig:
     geoid_m: float | None = None
     line_type: str | None = None
     exclude_line_type: str | None = None
+    allow_implausible: bool = False
+    error_sigma: float | None = None
+    error_correlation_m: float | None = None
+    unit: str | None = None
+    altitude_m: float | None = None
+    datum: str | None = None
+    crs: str | None = None
+    variable: str | None = None
+    reproject: bool = False
+    allow_implausible: bool = False
+
+    def grid_options(self) -> dict[str, Any]:
+        """The keys of a grid file as downloaded (``unit``, ``altitude_m``, ``datum``, ``crs``, ``variable``,
+        ``reproject``) as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
+        out: dict[str, Any] = {}
+        for k in ("unit", "altitude_m", "datum", "crs", "variable"):
+            if getattr(self, k) is not None:
+                out[k] = getattr(self, k)
+        if self.reproject:
+            out["reproject"] = True
+        return out
 
     def load_options(self) -> dict[str, Any]:
         """The survey keys as keyword arguments of :func:`magnav_ins.maps.io.load_map` (only those given)."""
@@ -319,6 +835,23 @@ def _check_keys(ctx: _Ctx, prefix: str, table: dict[str, Any], allowed: set[str]
             raise ConfigError(f"{loc}: missing key '{prefix + '.' if prefix else ''}{k}' in {table_name} (required)")
 
 
+def schema_key(key: str) -> ScenarioKey | None:
+    """The :data:`SCHEMA` entry of a key path (``"estimator[2].window"`` -> the ``estimator.window`` entry)."""
+    return _SCHEMA_BY_PATH.get(re.sub(r"\[\d+\]", "", key))
+
+
+def _in_range(ctx: _Ctx, key: str, x: float, raw: Any) -> None:
+    """The :data:`SCHEMA` range of ``key``, if it has one."""
+    spec = schema_key(key)
+    if spec is None or (spec.lo is None and spec.hi is None):
+        return
+    low = spec.lo is not None and (x <= spec.lo if spec.lo_open else x < spec.lo)
+    high = spec.hi is not None and x > spec.hi
+    if low or high:
+        why = f": {spec.why}" if spec.why else ""
+        raise ctx.error(key, f"{raw!r} is out of range; expected {spec.range_text}{why}")
+
+
 def _number(ctx: _Ctx, key: str, v: Any, *, positive: bool = False, nonneg: bool = False) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise ctx.error(key, f"expected a number, got {type(v).__name__} {v!r}")
@@ -329,6 +862,7 @@ def _number(ctx: _Ctx, key: str, v: Any, *, positive: bool = False, nonneg: bool
         raise ctx.error(key, f"expected a positive number, got {v!r}")
     if nonneg and x < 0:
         raise ctx.error(key, f"expected a number >= 0, got {v!r}")
+    _in_range(ctx, key, x, v)
     return x
 
 
@@ -337,6 +871,7 @@ def _int(ctx: _Ctx, key: str, v: Any, *, minimum: int | None = None) -> int:
         raise ctx.error(key, f"expected an integer, got {type(v).__name__} {v!r}")
     if minimum is not None and v < minimum:
         raise ctx.error(key, f"expected an integer >= {minimum}, got {v}")
+    _in_range(ctx, key, float(v), v)
     return int(v)
 
 
@@ -379,8 +914,9 @@ _TRAJ_KEYS = {
     "file": ({"path"}, set()),
     "lawnmower": (
         {"start", "heading_deg", "leg_length_m", "leg_spacing_m", "legs", "altitude_m", "speed_mps"},
-        {"turn_rate_deg_s"},
+        {"turn_rate_deg_s", "roll_time_constant_s"},
     ),
+    "ground_path": ({"origin", "points_m", "speed_mps"}, {"altitude_m", "corner_radius_m", "wander"}),
 }
 
 
@@ -436,8 +972,33 @@ def _trajectory(ctx: _Ctx, t: dict[str, Any], base: Path) -> TrajectoryConfig:
         kw["leg_length_m"] = _number(ctx, "trajectory.leg_length_m", t["leg_length_m"], positive=True)
         kw["leg_spacing_m"] = _number(ctx, "trajectory.leg_spacing_m", t["leg_spacing_m"], positive=True)
         kw["legs"] = _int(ctx, "trajectory.legs", t["legs"], minimum=1)
-        if "turn_rate_deg_s" in t:
-            kw["turn_rate_deg_s"] = _number(ctx, "trajectory.turn_rate_deg_s", t["turn_rate_deg_s"], positive=True)
+        for key in ("turn_rate_deg_s", "roll_time_constant_s"):
+            if key in t:
+                kw[key] = _number(ctx, f"trajectory.{key}", t[key], positive=True)
+    elif kind == "ground_path":
+        kw["origin_deg"] = _latlon(ctx, "trajectory.origin", t["origin"])
+        pts = t["points_m"]
+        if not isinstance(pts, list) or len(pts) < 2 or not all(isinstance(p, list) and len(p) == 2 for p in pts):
+            raise ctx.error("trajectory.points_m", f"expected at least two [north_m, east_m] points, got {pts!r}")
+        kw["points_m"] = tuple(
+            (_number(ctx, "trajectory.points_m", p[0]), _number(ctx, "trajectory.points_m", p[1])) for p in pts
+        )
+        kw.setdefault("altitude_m", 0.0)
+        if "corner_radius_m" in t:
+            kw["corner_radius_m"] = _number(ctx, "trajectory.corner_radius_m", t["corner_radius_m"], nonneg=True)
+        if "wander" in t:
+            w = t["wander"]
+            if not isinstance(w, dict):
+                raise ctx.error("trajectory.wander", f"expected a table {{ accel_sigma_mps2 = ..., ... }}, got {w!r}")
+            _check_keys(ctx, "trajectory.wander", w, set(WANDER_KEYS), set())
+            kw["wander"] = {k: _number(ctx, f"trajectory.wander.{k}", v, nonneg=True) for k, v in w.items()}
+        from ..ins.ground_path import Path2D, Wander
+
+        try:
+            Path2D.from_points(kw["points_m"], kw.get("corner_radius_m", 1.0))
+            Wander(**(kw.get("wander") or {}))
+        except ConfigError as exc:
+            raise ctx.error("trajectory", str(exc)) from None
     else:
         kw["path"] = _path(ctx, "trajectory.path", t["path"], base, allow_spec=False)
     return TrajectoryConfig(**kw)
@@ -453,7 +1014,9 @@ def _imu(ctx: _Ctx, t: dict[str, Any]) -> ImuConfig:
 def _init(ctx: _Ctx, t: dict[str, Any] | None) -> InitConfig:
     if t is None:
         return InitConfig()
-    _check_keys(ctx, "init", t, {"position_sigma_m", "velocity_sigma_mps", "attitude_sigma_deg"}, set())
+    _check_keys(
+        ctx, "init", t, {"position_sigma_m", "velocity_sigma_mps", "attitude_sigma_deg", "position_offset_m"}, set()
+    )
     d = InitConfig()
     pos = _number(ctx, "init.position_sigma_m", t.get("position_sigma_m", d.position_sigma_m), nonneg=True)
     vel = _number(ctx, "init.velocity_sigma_mps", t.get("velocity_sigma_mps", d.velocity_sigma_mps), nonneg=True)
@@ -461,7 +1024,12 @@ def _init(ctx: _Ctx, t: dict[str, Any] | None) -> InitConfig:
     if not isinstance(att, list) or len(att) != 3:
         raise ctx.error("init.attitude_sigma_deg", f"expected [roll, pitch, yaw] in degrees, got {att!r}")
     att_t = tuple(_number(ctx, "init.attitude_sigma_deg", a, nonneg=True) for a in att)
-    return InitConfig(pos, vel, att_t)  # type: ignore[arg-type]
+    off = t.get("position_offset_m")
+    if off is not None:
+        if not isinstance(off, list) or len(off) != 2:
+            raise ctx.error("init.position_offset_m", f"expected [north_m, east_m], got {off!r}")
+        off = (_number(ctx, "init.position_offset_m", off[0]), _number(ctx, "init.position_offset_m", off[1]))
+    return InitConfig(pos, vel, att_t, off)  # type: ignore[arg-type]
 
 
 def _columns(ctx: _Ctx, key: str, v: Any) -> tuple[tuple[str, str], ...]:
@@ -479,6 +1047,7 @@ def _columns(ctx: _Ctx, key: str, v: Any) -> tuple[tuple[str, str], ...]:
 
 
 _MAP_SURVEY_KEYS = {"columns", "geoid_m", "line_type", "exclude_line_type"}
+_MAP_GRID_KEYS = {"unit", "altitude_m", "datum", "crs", "variable", "reproject"}
 
 
 def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
@@ -486,7 +1055,18 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
         ctx,
         "map",
         t,
-        {"path", "kind", "grid_spacing_m", "exclude_lines", "options"} | _MAP_SURVEY_KEYS,
+        {
+            "path",
+            "kind",
+            "grid_spacing_m",
+            "exclude_lines",
+            "options",
+            "error_sigma",
+            "error_correlation_m",
+            "allow_implausible",
+        }
+        | _MAP_SURVEY_KEYS
+        | _MAP_GRID_KEYS,
         {"path", "kind"},
     )
     path = _path(ctx, "map.path", t["path"], base)
@@ -514,7 +1094,32 @@ def _map(ctx: _Ctx, t: dict[str, Any], base: Path) -> MapConfig:
     if kw and not path.lower().endswith(SURVEY_SUFFIXES):
         k = sorted(kw)[0]
         raise ctx.error(f"map.{k}", "applies to a survey CSV map (gridded on load), not to a grid file")
-    return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), **kw)
+    grid_kw: dict[str, Any] = {}
+    for k in ("unit", "datum", "crs", "variable"):
+        if k in t:
+            grid_kw[k] = _str(ctx, f"map.{k}", t[k])
+    if "altitude_m" in t:
+        grid_kw["altitude_m"] = _number(ctx, "map.altitude_m", t["altitude_m"])
+    if "reproject" in t:
+        if not isinstance(t["reproject"], bool):
+            raise ctx.error("map.reproject", f"expected true or false, got {t['reproject']!r}")
+        grid_kw["reproject"] = t["reproject"]
+    if grid_kw and (path.startswith(SPEC_PREFIXES) or path.lower().endswith(SURVEY_SUFFIXES)):
+        k = sorted(grid_kw)[0]
+        raise ctx.error(f"map.{k}", "applies to a grid file (GeoTIFF, ER Mapper, GXF, NetCDF), not to this map")
+    kw.update(grid_kw)
+    if "error_sigma" in t:
+        kw["error_sigma"] = _number(ctx, "map.error_sigma", t["error_sigma"], positive=True)
+        if "error_correlation_m" not in t:
+            raise ctx.error("map.error_sigma", "needs error_correlation_m (m), the map error's correlation length")
+    if "error_correlation_m" in t:
+        if "error_sigma" not in t:
+            raise ctx.error("map.error_correlation_m", "needs error_sigma (1-sigma map error in the map's unit)")
+        kw["error_correlation_m"] = _number(ctx, "map.error_correlation_m", t["error_correlation_m"], positive=True)
+    allow = t.get("allow_implausible", False)
+    if not isinstance(allow, bool):
+        raise ctx.error("map.allow_implausible", f"expected true or false, got {allow!r}")
+    return MapConfig(path, FieldKind(kind_s), spacing, excl_t, dict(opts), allow_implausible=allow, **kw)
 
 
 def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfig) -> SensorConfig:
@@ -526,6 +1131,13 @@ def _sensor(ctx: _Ctx, t: dict[str, Any], fmap: MapConfig, traj: TrajectoryConfi
         )
     sigma = _number(ctx, "sensor.sigma", t["sigma"], positive=True)
     interval = _number(ctx, "sensor.interval_s", t["interval_s"], positive=True)
+    limit = SENSOR_SIGMA_MAX[SENSOR_KINDS[kind]]
+    if sigma > limit:
+        raise ctx.error(
+            "sensor.sigma",
+            f"{t['sigma']!r} {SENSOR_KINDS[kind].unit} is implausible for a {kind} (at most {limit:g}: the map's own "
+            "range); is it in the map's unit?",
+        )
     source = _str(ctx, "sensor.source", t.get("source", "simulated"), SENSOR_SOURCES)
     if source == "survey" and traj.kind != "survey_line":
         raise ctx.error(
@@ -626,6 +1238,45 @@ def _estimators(ctx: _Ctx, data: dict[str, Any]) -> tuple[EstimatorConfig, ...]:
     return tuple(out)
 
 
+def estimated_duration_s(traj: TrajectoryConfig) -> float | None:
+    """Flight time (s) of a great-circle or waypoint trajectory from its length on a sphere of the Earth's mean radius
+    and its speed (capped by ``duration_s``); None when only the data tell (survey lines, files)."""
+    if traj.kind == "great_circle" and traj.start_deg and traj.end_deg:
+        pts = [traj.start_deg, traj.end_deg]
+    elif traj.kind == "waypoints" and traj.points_deg:
+        pts = list(traj.points_deg)
+    else:
+        return traj.duration_s
+    length = 0.0
+    for (la0, lo0), (la1, lo1) in zip(pts[:-1], pts[1:], strict=True):
+        p0, p1, dl = math.radians(la0), math.radians(la1), math.radians(lo1 - lo0)
+        c = math.sin(p0) * math.sin(p1) + math.cos(p0) * math.cos(p1) * math.cos(dl)
+        length += _MEAN_EARTH_RADIUS_M * math.acos(max(-1.0, min(1.0, c)))
+    t = length / traj.speed_mps if traj.speed_mps else math.inf
+    return min(t, traj.duration_s) if traj.duration_s is not None else t
+
+
+#: mean Earth radius (IUGG), m: only for the size estimate of :func:`estimated_duration_s`
+_MEAN_EARTH_RADIUS_M = 6_371_008.8
+
+
+def _check_sizes(ctx: _Ctx, traj: TrajectoryConfig, imu: ImuConfig, sensor: SensorConfig | None) -> None:
+    """Cross-key limits: a reading interval of at least one IMU period, and at most
+    :data:`MAX_IMU_SAMPLES_PER_RUN` IMU samples per run (memory), naming the keys to change."""
+    if sensor is not None and sensor.interval_s * imu.rate_hz < 1.0 - 1e-9:
+        raise ctx.error(
+            "sensor.interval_s",
+            f"{sensor.interval_s:g} s is shorter than one IMU period (1 / rate_hz = {1.0 / imu.rate_hz:g} s)",
+        )
+    dur = estimated_duration_s(traj)
+    if dur is not None and dur * imu.rate_hz > MAX_IMU_SAMPLES_PER_RUN:
+        raise ctx.error(
+            "imu.rate_hz",
+            f"{imu.rate_hz:g} Hz over the {dur:.4g} s trajectory is {dur * imu.rate_hz:.3g} IMU samples per run, more "
+            f"than {MAX_IMU_SAMPLES_PER_RUN:.0e} (memory); lower rate_hz or set [trajectory] duration_s",
+        )
+
+
 _TOP_KEYS = {"name", "description", "seed", "runs", "trajectory", "imu", "init", "map", "sensor", "estimator"}
 
 
@@ -654,15 +1305,33 @@ def scenario_from_dict(
             raise ctx.error("sensor", "a [sensor] needs a [map] to read from")
         sensor = _sensor(ctx, _table(ctx, data, "sensor"), fmap, traj)  # type: ignore[arg-type]
     ests = _estimators(ctx, data)
+    _check_sizes(ctx, traj, imu, sensor)
     return Scenario(name, seed, runs, traj, imu, init, fmap, sensor, ests, description, source, dict(ctx.lines))
 
 
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file. Raises :class:`ConfigError` naming the file, line and key."""
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a folder; expected a scenario file (TOML)")
     if not path.is_file():
         raise ConfigError(f"{path}: scenario file does not exist")
-    text = path.read_text(encoding="utf-8")
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the scenario file ({exc.strerror or exc})") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(
+            f"{path} line {line}: not a text file (byte {exc.start} is not UTF-8); expected TOML"
+        ) from None
+    if "\x00" in text:
+        line = text[: text.index("\x00")].count("\n") + 1
+        raise ConfigError(f"{path} line {line}: not a text file (it holds a NUL byte); expected TOML")
+    if not text.strip():
+        raise ConfigError(f"{path}: the scenario file is empty")
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

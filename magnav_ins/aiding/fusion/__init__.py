@@ -1,5 +1,5 @@
 """Fusion back ends behind :class:`magnav_ins.core.protocols.Fuser`: a UKF (filterpy), a factor graph (GTSAM,
-iSAM2 + batch LM) and a free-inertial baseline. :func:`make_fuser` builds one by name without importing the
+iSAM2 + batch LM), a free-inertial baseline and Storms' 2-D constant-velocity Kalman filter (``cv_kf``). :func:`make_fuser` builds one by name without importing the
 other back ends' libraries; :func:`check_fusion_options` validates a fusion spec without building (or importing)
 anything."""
 
@@ -11,7 +11,7 @@ from ...core.errors import ConfigError
 from ...core.types import NavEstimate
 from .common import ExtraStates, ImuNoise, LocalFrame
 
-FUSER_KINDS = ("ukf", "graph", "free_inertial")
+FUSER_KINDS = ("ukf", "graph", "free_inertial", "cv_kf")
 
 #: optional error states of the inertial fusers (:class:`common.ExtraStates`)
 EXTRA_STATE_OPTIONS = ("scale_factors", "scale_factor_tau_s", "map_bias_sigma_m", "map_bias_tau_s", "map_bias_sources")
@@ -38,6 +38,7 @@ FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
         "altitude_hold_sigma_m",
     ),
     "free_inertial": ("gate_probability", *_CORE, "integrity_risk", *EXTRA_STATE_OPTIONS),
+    "cv_kf": ("accel_sigma_mps2", "turn_command", "gate_probability", "altitude_hold"),
 }
 
 
@@ -74,6 +75,10 @@ def make_fuser(kind: str, init: NavEstimate, noise: ImuNoise, **options):
         from .graph import GraphFuser
 
         return GraphFuser(init, noise, **options)
+    if kind == "cv_kf":
+        from .cv_kf import CvKalmanFuser
+
+        return CvKalmanFuser(init, noise, **options)
     from .free_inertial import FreeInertial
 
     return FreeInertial(init, noise, **options)

@@ -37,10 +37,11 @@ Horizontal protection level (:meth:`FaultMonitor.hpl`, m), at ``integrity_risk``
 * ``m_f`` the fault-detection margin: the error that faults the tests could not see may have caused. A bias ``b``
   on one fix passes the gate while ``b^T S^-1 b <= T_gate`` and moves the estimate by ``K_pos b``, at most
   ``sqrt(T_gate lambda_max(P- - P+))`` (the slope bound of RAIM, Brown & Chin 1998, applied to the Kalman
-  update: ``K_pos S K_pos^T = P- - P+``, the fix's covariance reduction). The margins of successive fixes add in
-  quadrature, the old one shrunk by each later update (``|| P+ (P-)^-1 ||``, the part of an old position error
+  update: ``K_pos S K_pos^T = P- - P+``, the fix's covariance reduction). One fault at a time (RAIM's
+  single-fault hypothesis; several faults within a window are the window test's): the margin is the larger of the
+  new fix's and the earlier one's, shrunk by the update (``|| P+ (P-)^-1 ||``, the part of an old position error
   the update leaves) and scaled with the filter's horizontal sigma between fixes (the induced error propagates
-  through the same dynamics as the estimation error); the window test bounds a persistent bias.
+  through the same dynamics as the estimation error).
 * ``d`` the doubt of unresolved exclusions: while fixes excluded since the last accepted one are unexplained, the
   filter may be the one that is wrong, by up to the residual: ``d = max_i |r_i| + K sqrt(lambda_max(R_i +
   P_ne))``. The next accepted fix resolves them (they were faults); a recovery resolves them the other way.
@@ -224,6 +225,14 @@ class FaultMonitor:
             return Verdict("accept", extra={"window_nis": s, "window_dof": 2.0 * n})
         return Verdict("accept")
 
+    def exclusion(self, t: float, residual_ne: ArrayLike, R_ne: ArrayLike, P_ne: ArrayLike) -> None:
+        """Record a fix the fuser excluded by a test of its own (a batch of correlated fixes gated as one): it
+        counts as a fault and its residual (m) joins the doubt until a fix is accepted; it takes no part in a
+        recovery."""
+        r = np.asarray(residual_ne, float).reshape(2)
+        if np.all(np.isfinite(r)):
+            self._exclude(_Excluded(float(t), r, np.asarray(R_ne, float), np.asarray(P_ne, float), False))
+
     def _exclude(self, ex: _Excluded) -> None:
         self.n_faults += 1
         self._excluded.append(ex)
@@ -287,7 +296,7 @@ class FaultMonitor:
         except np.linalg.LinAlgError:
             shrink = 1.0
         new2 = T * lambda_max(_psd(Pm - Pp)) if np.isfinite(T) else 0.0
-        self._margin = math.sqrt((min(shrink, 1.0) * old) ** 2 + new2)
+        self._margin = max(min(shrink, 1.0) * old, math.sqrt(new2))
         self._lam_ref = lambda_max(Pp)
 
     # ----------------------------------------------------------------------------------- protection level

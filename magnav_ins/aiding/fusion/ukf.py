@@ -48,6 +48,8 @@ Sigma points: ``alpha = 1, beta = 2, kappa = 0`` by default (lambda = 0, no nega
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import scipy.linalg
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
@@ -290,10 +292,13 @@ class UkfFuser(InertialCore):
         batch); gated at ``gate_probability`` with 2J dof. Returns one innovation at the last fix time."""
         from .batch import correct_batch
 
+        P_before = self.estimate().cov_ne.copy()
         inn = correct_batch(self, fixes, cov, self.gate_probability)
-        if inn.reason.startswith("NIS"):
-            self._n_rejected += 1
-        elif inn.accepted:
-            self._n_rejected = 0
+        if inn.accepted:  # the batch's covariance reduction, at the current time, sets the fault-detection margin
+            self.monitor.accepted(inn.t, inn.nis, P_before, self.estimate().cov_ne)
+        elif inn.reason.startswith("NIS") and fixes:
+            C = np.asarray(cov, float)
+            inn = dataclasses.replace(inn, extra={**inn.extra, "fault": 1.0})
+            self.monitor.exclusion(inn.t, inn.residual_ne, C[-2:, -2:], P_before)
         self.innovations.append(inn)
         return inn

@@ -34,8 +34,8 @@ class TrackWindow:
 
     ``t`` (T,) s; ``z`` (T, c) readings; ``x_ins`` (T, 2) INS north/east m; ``cov`` (T, 2, 2) its covariance m^2;
     ``half`` (T, 2) gate half-widths m; ``good`` (T,) finite readings; ``s2`` (T,) reading variance (sensor + map
-    error, map unit^2); ``rel_drift`` (T,) m the INS drift of scan t relative to the last scan (the growth of the
-    INS sigma between them); ``sensor_sigma`` the readings' own sigma; ``map_error_source`` where the map error
+    error, map unit^2); ``rel_drift`` (T,) m the INS drift of scan t relative to the last scan,
+    ``sqrt(sigma_T^2 - sigma_t^2)`` (the variance the INS adds between them, increments taken as independent); ``sensor_sigma`` the readings' own sigma; ``map_error_source`` where the map error
     came from (``map_error.MapErrorModel.source``)."""
 
     frame: WorkFrame
@@ -85,9 +85,9 @@ def track_window(
     dn, de = frame.to_ne(lat, lon)
     x_ins = np.column_stack([dn, de])
     s2, source = reading_variance(fmap, lat, lon, x_ins, float(rd.sigma), map_sigma, correlation_m)
-    sig_ins = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
-    growth = np.maximum(np.diff(sig_ins), 0.0)
-    rel = np.append(np.cumsum(growth[::-1])[::-1], 0.0)
+    var_ins = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+    growth2 = np.maximum(np.diff(var_ins), 0.0)  # variance the INS adds between scans (m^2)
+    rel = np.sqrt(np.append(np.cumsum(growth2[::-1])[::-1], 0.0))
     return TrackWindow(frame, np.asarray(rd.t, float)[sl], z, x_ins, cov, half, good, s2, rel, float(rd.sigma), source)
 
 

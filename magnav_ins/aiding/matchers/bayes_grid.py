@@ -2,28 +2,44 @@
 
 At each update:
 
-1. Prior (eq. 3.5): the discrete bivariate Gaussian of the propagated mean and covariance (here the INS estimate
-   handed to :meth:`BayesGridMatcher.predict`) on the map grid nodes of a window of ``window_sigma`` prior sigmas.
+1. Prior (eq. 3.5): the discrete bivariate Gaussian of the propagated mean and covariance (here the estimate handed
+   to :meth:`BayesGridMatcher.predict`: the INS + UKF's, or Storms' own 2-D constant-velocity Kalman filter,
+   :mod:`magnav_ins.aiding.fusion.cv_kf`) on the map grid nodes of a window of ``window_sigma`` prior sigmas.
 2. Likelihood (eq. 3.6): ``L = exp(-sum_k (y_k - h_k(x))^2 / (2 s^2))`` over the 3 field components (or the
-   scalar), ``s^2 = sigma_reading^2 + map_sigma^2`` (log space).
-3. Posterior = prior x likelihood (eq. 2.19); its peak (MAP) is the position measurement.
-4. R (sec. 3.4.2.4, ``covariance="spread"``): through the peak, along north and along east, the normalised slice
-   is treated as a pdf; the points leaving ``tail`` (~16 %) in each tail are found and their distances to the peak
-   averaged -> ``sigma_N``, ``sigma_E``; ``R = diag(sigma_N^2, sigma_E^2)``. The thesis computes the slices from
-   the likelihood (eq. 3.6) to keep R uncorrelated with the filter's prior (``spread_of="likelihood"``, default);
-   ``"posterior"`` uses the posterior slices. The default ``covariance="posterior"`` reports instead the full
-   posterior second moment about the peak: the slices only see the peak they cross, so when a second peak wins
-   the published R is far too small (fix NEES mean ~13 against ~1.5 on our random 3-axis maps, 100 trials).
-   The grid quantisation ``step^2 / 12`` is added to either.
+   scalar), ``s^2 = sigma_reading^2 + sigma_map(x)^2`` (log space). The map error ``sigma_map`` comes from
+   :func:`~magnav_ins.aiding.matchers.map_error.resolve_map_error`: the ``map_sigma`` option (> 0), else the map's
+   error layer at each node, else that module's stated default; ``map_sigma = 0`` states the map exact (a
+   simulation whose readings are drawn from the map itself).
+3. Posterior = prior x likelihood (eq. 2.19); its peak (MAP) is the position measurement (sec. 3.4.2.3).
+4. R, the fix covariance. ``covariance`` says which rule:
+
+   * ``"storms"`` (default; sec. 3.4.2.4): through the posterior peak, lay a line of grid points along north
+     (Storms' X) and one along east (Y); evaluate the *likelihood* (eq. 3.6) alone on each line, normalise each to a
+     pdf, find the points leaving ``tail`` (~16 %) in each tail and average their distances to that pdf's *mean*
+     -> ``sigma_N``, ``sigma_E``; ``R = diag(sigma_N^2, sigma_E^2)``. The likelihood, not the posterior: the
+     posterior contains the filter's own prior, so an R from it would be correlated with the filter and the prior
+     counted twice (Storms' reason for the rule).
+   * ``"posterior"``: the posterior's full second moment about its peak (the prior counted twice, as said; kept
+     for comparison: on the Storms hallway it gives fix NEES ~3.4 where the likelihood rule gives ~1.9).
+   * ``"spread"``: the 16 % tail points of the slices (of the likelihood, or with ``spread_of="posterior"`` of the
+     posterior), their distances measured to the *peak* (this module's reading of sec. 3.4.2.4 before 2026-12-01).
+
+   The grid quantisation ``step^2 / 12`` is added to each. What R contains: the sensor noise and the map error
+   (through the likelihood's ``s^2``), the spread of the likelihood along the two lines through the peak, and the
+   node quantisation; not the map error's correlation between successive fixes (a fix every 1.5 s at 0.5 m/s
+   reads the map 0.75 m further on).
 Map resolution: where the RMS map gradient times the node spacing exceeds ``quantisation`` reading sigmas, the
 window is resampled (bilinear) at a finer step (at most ``max_refine`` times finer), and the remaining node error
 ``|grad|^2 step^2 / 12`` is added to the likelihood variance.
 
-Guards (Storms sec. 4.5 suggestions): several separated posterior peaks inside the prior region (a second local
-maximum at least ``min_peak_separation_m`` away holding at least ``peak_ratio`` of the peak density, inside the
-``prior_region_sigma`` ellipse) -> "no fix, ambiguous"; a reading residual at the peak above
-``max_residual_sigma`` s per component (chi-square) -> "no fix, large residual"; off the map, flat map (feature
-variability, Wang eq. 14), NaN reading -> "no fix" with the reason.
+Guards (ours, after Storms' sec. 4.3.3 suggestions; ``guards = false`` switches them off for his algorithm as
+published): several separated posterior peaks inside the prior region (a second local maximum at least
+``min_peak_separation_m`` away holding at least ``peak_ratio`` of the peak density, inside the
+``prior_region_sigma`` ellipse) -> "no fix, ambiguous"; less than ``min_peak_mass`` of the posterior inside the
+fix's own ``peak_mass_sigma`` ellipse (R does not describe the posterior: it is spread over other modes) -> "no
+fix, ambiguous"; a reading residual at the peak above ``max_residual_sigma`` s per component (chi-square) -> "no
+fix, large residual". Always: off the map, flat map (feature variability, Wang eq. 14), NaN reading -> "no fix"
+with the reason.
 """
 
 from __future__ import annotations
@@ -46,6 +62,7 @@ from ._local import (
     spacing_of,
     window_axes,
 )
+from .map_error import resolve_map_error
 
 FloatArray = NDArray[np.float64]
 
@@ -65,8 +82,8 @@ class BayesGridState:
 
 
 def _tail_sigma(pdf: FloatArray, x: FloatArray, x_peak: float, tail: float) -> float:
-    """Storms' R (sec. 3.4.2.4): average distance from ``x_peak`` of the points leaving ``tail`` in each tail of
-    the 1-D ``pdf`` sampled at ``x`` (linear interpolation of the cumulative sum at cell centres)."""
+    """Average distance from ``x_peak`` of the points leaving ``tail`` in each tail of the 1-D ``pdf`` sampled at
+    ``x`` (linear interpolation of the cumulative sum at cell centres); NaN for an empty pdf."""
     p = np.where(np.isfinite(pdf), pdf, 0.0)
     tot = p.sum()
     if tot <= 0:
@@ -77,6 +94,22 @@ def _tail_sigma(pdf: FloatArray, x: FloatArray, x_peak: float, tail: float) -> f
     return 0.5 * (abs(x_peak - lo) + abs(hi - x_peak))
 
 
+def storms_sigma(pdf: FloatArray, x: FloatArray, tail: float = 0.16) -> float:
+    """Storms' 1-sigma of an experimental pdf (sec. 3.4.2.4): the line of values ``pdf`` (any scale; normalised
+    here) at the points ``x`` (m), the points leaving ``tail`` in each tail found, and their distances to the pdf's
+    *mean* averaged. For a Gaussian this is its sigma when ``tail`` = 0.1587. NaN for an empty pdf."""
+    p = np.where(np.isfinite(pdf), pdf, 0.0)
+    tot = p.sum()
+    if tot <= 0:
+        return float("nan")
+    mean = float(np.sum(p * x) / tot)
+    return _tail_sigma(p, x, mean, tail)
+
+
+#: the fix-covariance rules of :class:`BayesGridMatcher` (module docstring, step 4)
+COVARIANCE_RULES = ("storms", "posterior", "spread")
+
+
 @dataclass
 class BayesGridMatcher:
     """Bayes grid matcher (module docstring). Recursive: ``initiate``, ``predict``, ``update``, ``to_fix``."""
@@ -84,14 +117,18 @@ class BayesGridMatcher:
     window_sigma: float = 4.0
     window_floor_m: float = 1.0
     resolution_m: float | None = None
-    map_sigma: float = 0.0
+    map_sigma: float | None = None
+    map_correlation_m: float | None = None
     tail: float = 0.16
     spread_of: str = "likelihood"
-    covariance: str = "posterior"
+    covariance: str = "storms"
     prior_region_sigma: float = 2.0
     peak_ratio: float = 0.5
     min_peak_separation_m: float | None = None
     max_residual_sigma: float = 4.0
+    min_peak_mass: float = 0.5
+    peak_mass_sigma: float = 3.0
+    guards: bool = True
     min_variability: float = 0.5
     max_nodes: int = 1_000_000
     quantisation: float = 1.0
@@ -101,8 +138,12 @@ class BayesGridMatcher:
     def __post_init__(self) -> None:
         if self.spread_of not in ("likelihood", "posterior"):
             raise ConfigError(f"bayes_grid 'spread_of': expected 'likelihood' or 'posterior', got {self.spread_of!r}")
-        if self.covariance not in ("spread", "posterior"):
-            raise ConfigError(f"bayes_grid 'covariance': expected 'spread' or 'posterior', got {self.covariance!r}")
+        if self.covariance not in COVARIANCE_RULES:
+            raise ConfigError(
+                f"bayes_grid 'covariance': expected one of {', '.join(COVARIANCE_RULES)}, got {self.covariance!r}"
+            )
+        if self.map_sigma is not None and not (np.isfinite(self.map_sigma) and self.map_sigma >= 0):
+            raise ConfigError(f"bayes_grid 'map_sigma': expected >= 0 (map unit) or unset, got {self.map_sigma!r}")
         if not 0.0 < self.tail < 0.5:
             raise ConfigError(f"bayes_grid 'tail': expected 0 < tail < 0.5, got {self.tail!r}")
         for key in ("window_sigma", "prior_region_sigma", "max_residual_sigma"):
@@ -157,7 +198,11 @@ class BayesGridMatcher:
         step0 = self.resolution_m or spacing_of(fmap, 0.5)
         half_n, half_e = sigma_window(cov, self.window_sigma, self.window_floor_m)
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
-        s2 = float(readings.sigma) ** 2 + self.map_sigma**2
+        # map_sigma = 0: the map is stated exact (a study whose readings are drawn from this very map)
+        map_err = None if self.map_sigma == 0.0 else resolve_map_error(fmap, self.map_sigma, self.map_correlation_m)
+        s2 = float(readings.sigma) ** 2
+        if map_err is not None and map_err.source != "layer":  # uniform (option or default): known beforehand
+            s2 = s2 + map_err.uniform_sigma**2
         g_rms = native_gradient_rms(native)
         if native is not None and self.quantisation > 0 and np.isfinite(g_rms) and g_rms > 0:
             sp = min(float(native[0][1] - native[0][0]), float(native[1][1] - native[1][0]))
@@ -177,6 +222,8 @@ class BayesGridMatcher:
             m = frame.sample(gn, ge, state.h).reshape(gn.shape + (ncomp,))
         if np.isfinite(g_rms):  # value error of the nearest node: |grad|^2 step^2 / 12
             s2 = s2 + g_rms**2 * step**2 / 12.0
+        if map_err is not None and map_err.source == "layer":  # the layer's sigma at every node of the window
+            s2 = s2 + map_err.sigma_at(*frame.to_latlon(gn, ge)) ** 2
         loglik = -0.5 * np.sum((m - z) ** 2, axis=-1) / s2
         finite = np.isfinite(loglik)
         if not np.any(finite):
@@ -187,11 +234,12 @@ class BayesGridMatcher:
             variability = feature_variability(m, centre)
         else:
             variability = 2.0 * float(np.sum(np.nan_to_num(np.nanvar(m.reshape(-1, ncomp), axis=0))))
-        if variability < self.min_variability**2 * s2:
+        s2_c = float(np.median(s2)) if np.ndim(s2) else float(s2)
+        if variability < self.min_variability**2 * s2_c:
             return Fix.no_fix(
                 t,
                 f"flat map: feature variability {np.sqrt(variability):.3g} below {self.min_variability:g} x "
-                f"reading sigma {np.sqrt(s2):.3g}",
+                f"reading sigma {np.sqrt(s2_c):.3g}",
                 self.name,
             ), {}
         ci = np.linalg.inv(cov)
@@ -204,8 +252,8 @@ class BayesGridMatcher:
         post /= post.sum()
         n_fix, e_fix = float(gn[kp]), float(ge[kp])
         # guard: residual at the peak
-        res2 = float(np.sum((m[kp] - z) ** 2) / s2)
-        if res2 > ncomp * self.max_residual_sigma**2:
+        res2 = float(np.sum((m[kp] - z) ** 2) / (s2[kp] if np.ndim(s2) else s2))
+        if self.guards and res2 > ncomp * self.max_residual_sigma**2:
             return Fix.no_fix(t, f"large residual: {np.sqrt(res2 / ncomp):.3g} sigma per component", self.name), {}
         # guard: several peaks inside the prior region
         sep = self.min_peak_separation_m if self.min_peak_separation_m is not None else 4.0 * step
@@ -215,12 +263,17 @@ class BayesGridMatcher:
         inside = d2 <= self.prior_region_sigma**2
         far = (gn - n_fix) ** 2 + (ge - e_fix) ** 2 >= sep**2
         rivals = local_max & inside & far
-        if np.any(rivals):
+        if self.guards and np.any(rivals):
             ratio = float(post[rivals].max() / post[kp])
             return Fix.no_fix(
                 t, f"ambiguous: {int(rivals.sum())} other peak(s) in the prior region (ratio {ratio:.2f})", self.name
             ), {"peaks": float(rivals.sum() + 1)}
-        if self.covariance == "posterior":
+        if self.covariance == "storms":  # sec. 3.4.2.4: the likelihood alone on the lines through the peak
+            lik = np.exp(loglik - loglik[kp])
+            sig_n = storms_sigma(lik[:, kp[1]], n_ax, self.tail)
+            sig_e = storms_sigma(lik[kp[0], :], e_ax, self.tail)
+            R = np.diag([sig_n**2, sig_e**2])
+        elif self.covariance == "posterior":
             dn, de = gn - n_fix, ge - e_fix
             R = np.array(
                 [[np.sum(post * dn * dn), np.sum(post * dn * de)], [np.sum(post * dn * de), np.sum(post * de * de)]]
@@ -233,6 +286,19 @@ class BayesGridMatcher:
         R = R + np.eye(2) * step**2 / 12.0
         if not np.all(np.isfinite(R)):
             return Fix.no_fix(t, "posterior spread not finite", self.name), {}
+        # the posterior mass the fix's own covariance accounts for: inside its k-sigma ellipse about the peak
+        dn, de = gn - n_fix, ge - e_fix
+        ri = np.linalg.inv(R)
+        own = ri[0, 0] * dn**2 + 2 * ri[0, 1] * dn * de + ri[1, 1] * de**2 <= self.peak_mass_sigma**2
+        mass = float(post[own].sum())
+        extra = {"residual_sigma": np.sqrt(res2 / ncomp), "peak_mass": mass}
+        if self.guards and mass < self.min_peak_mass:
+            return Fix.no_fix(
+                t,
+                f"ambiguous: the fix's {self.peak_mass_sigma:g}-sigma ellipse holds {mass:.2f} of the posterior "
+                f"(< {self.min_peak_mass:g})",
+                self.name,
+            ), extra
         lat, lon = frame.to_latlon(n_fix, e_fix)
         score = float(post[kp])
-        return Fix(t, float(lat), float(lon), R, True, "", score, self.name), {"residual_sigma": np.sqrt(res2 / ncomp)}
+        return Fix(t, float(lat), float(lon), R, True, "", score, self.name), extra

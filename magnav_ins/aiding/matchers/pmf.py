@@ -10,8 +10,9 @@ position (the grid rides with the INS: Bergman's time update moves the masses by
   evidence alone and the fuser can add it to the INS without counting the INS twice) or the INS Gaussian
   (``use_prior=True``, Bergman's recursion from the prior);
 * time update: convolution with the INS drift since the last update, ``N(0, q I)`` with ``q`` the growth of the
-  INS position variance (plus ``drift_sigma^2 dt``), done as a Gaussian filter on the grid; the grid is widened
-  (masses interpolated) when the INS sigma outgrows it;
+  INS position variance (plus ``drift_sigma^2 dt``), done as a Gaussian filter on the grid with the density beyond
+  the border taken as the border's (the diffuse prior continues outside the grid); the grid is widened (masses
+  interpolated, the border density continued) when the INS sigma outgrows it;
 * measurement update: ``w(d) <- w(d) N(z; m(x_ins + d), s^2 + |grad m|^2 D^2 / 12)`` (``s^2`` sensor + map error,
   :mod:`._batch`; ``D`` the grid spacing, each node standing for its cell);
 * output (:meth:`PointMassFilter.to_fix`): the posterior mean and covariance (second moment plus ``D^2 / 12``) at
@@ -134,13 +135,16 @@ class PointMassFilter:
             fi = (BN - an[0]) / (an[1] - an[0])
             fj = (BE - ae[0]) / (ae[1] - ae[0])
             dens = w / ((an[1] - an[0]) * (ae[1] - ae[0]))
-            w = ndimage.map_coordinates(dens, [fi, fj], order=1, mode="constant", cval=0.0)
+            w = ndimage.map_coordinates(dens, [fi, fj], order=1, mode="nearest")  # the flat prior continues
             w = w * (bn[1] - bn[0]) * (be[1] - be[0])
             an, ae = bn, be
         if q > 0:
             sn, se = np.sqrt(q) / (an[1] - an[0]), np.sqrt(q) / (ae[1] - ae[0])
             if max(sn, se) > 0.05:
-                w = ndimage.gaussian_filter(w, sigma=(sn, se), mode="constant", cval=0.0, truncate=4.0)
+                # "nearest": the density beyond the border is taken as the border's (a flat prior continues there);
+                # an absorbing border would drain mass from the edges at every step and, renormalised, pile it up
+                # about the INS position: a spurious prior that pulls every fix back onto the INS
+                w = ndimage.gaussian_filter(w, sigma=(sn, se), mode="nearest", truncate=4.0)
         tot = float(w.sum())
         w = w / tot if tot > 0 else np.full_like(w, 1.0 / w.size)
         return PMFState(float(nav.t), float(nav.lat), float(nav.lon), float(nav.h), cov, an, ae, w, state.updates,

@@ -16,8 +16,10 @@ For a batch of ``T`` scans (field readings ``s_t`` with INS-indicated positions 
 3. Kinematics within the batch (eq. 6-7): ``"cv"`` constant velocity ``[n, e, v_n, v_e]`` with white acceleration
    ``accel_sigma``; or ``"ins"``: position only, moved by the INS displacement between scans plus a random walk
    ``ins_drift_sigma`` m/sqrt(s) (the INS is far better than CV over a batch when the vehicle turns); with
-   ``adaptive_drift`` (ours) the random-walk step is at least the growth of the INS position sigma between the two
-   scans (a tactical IMU drifts kilometres within a 300 s batch; a fixed 0.05 m/sqrt(s) made the batch rigid).
+   ``adaptive_drift`` (ours) the random-walk step variance is at least the growth of the INS position variance
+   between the two scans, ``sigma_{t+1}^2 - sigma_t^2`` (a tactical IMU drifts kilometres within a 300 s batch; a
+   fixed 0.05 m/sqrt(s) made the batch rigid; until 2026-12 the step was the growth of the sigma,
+   ``(sigma_{t+1} - sigma_t)^2``, about ``T`` times too small over a batch).
 4. Output: ``mode="standard"`` one fix at the last scan (smoothed state, covariance ``P_T|T``); ``"retrodiction"``
    a fix per scan (:meth:`PMHTMatcher.match_all`, smoothed covariances). The fix covariance is weighted by the map
    feature variability (eq. 14) ``C``: multiplied by ``max(1, variability_ref / (C / s^2))``; aiding stops (no fix,
@@ -417,7 +419,7 @@ class PMHTMatcher:
     pda_spread: bool = True
     map_sigma: float | None = None
     correlation_m: float | None = None
-    min_variability: float = 1.0
+    min_variability: float = 0.0
     variability_ref: float = 0.0
     variability_window_m: float | None = None
     reading_weight: bool = True
@@ -569,11 +571,13 @@ class PMHTMatcher:
         half = np.array([sigma_window(c, self.gate_sigma, self.window_floor_m) for c in cov])
         if not np.all(np.isfinite(half)):
             return "prior covariance not finite"
-        # INS drift within the batch (adaptive_drift): growth of the position sigma between scans (m), and the drift
-        # of each scan relative to the last one (the sum of the growths after it)
-        sig_ins = np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))
-        step_growth = np.maximum(np.diff(sig_ins), 0.0)
-        rel_drift = np.append(np.cumsum(step_growth[::-1])[::-1], 0.0) if self.adaptive_drift else np.zeros(T)
+        # INS drift within the batch (adaptive_drift): the position variance the INS adds between scans, and the
+        # drift of each scan relative to the last one
+        # the variance the INS adds between scans (m^2): a drift with independent increments has
+        # Var(dp_t - dp_T) = sigma_T^2 - sigma_t^2 (not (sigma_T - sigma_t)^2, which is far smaller)
+        var_ins = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+        step_growth2 = np.maximum(np.diff(var_ins), 0.0)
+        rel_drift = np.sqrt(np.append(np.cumsum(step_growth2[::-1])[::-1], 0.0)) if self.adaptive_drift else np.zeros(T)
         cand, dist, grad2, counts, var, step = self._lookup(frame, fmap, x_ins, half, z, s2)
         counts = np.where(good, counts, 0)
         if np.sum(counts > 0) < 2:
@@ -614,8 +618,8 @@ class PMHTMatcher:
             d = 2
             F = np.tile(np.eye(2), (T - 1, 1, 1))
             q = self.ins_drift_sigma**2 * dts
-            if self.adaptive_drift:  # the INS's own drift between scans: the growth of its position sigma
-                q = np.maximum(q, step_growth**2)
+            if self.adaptive_drift:  # the INS's own drift between scans: the growth of its position variance
+                q = np.maximum(q, step_growth2)
             Q = np.eye(2)[None] * q[:, None, None]
             u = np.diff(x_ins, axis=0)
             X0 = x_ins.copy()
@@ -740,7 +744,7 @@ class PMHTMatcher:
         ev, V = np.linalg.eigh(0.5 * (info + info.T))
         return (V / np.maximum(ev, 1.0 / big)) @ V.T, near
 
-    def _fix(self, res: PMHTResult, k: int) -> Fix:
+    def _fix(self, res: PMHTResult, k: int, check_information: bool = True) -> Fix:
         t = float(res.t[k])
         xk = res.X[k, :2]
         if np.any(np.abs(xk - res.x_ins[k]) > res.half[k]) or not np.all(np.isfinite(xk)):
@@ -772,7 +776,7 @@ class PMHTMatcher:
         cov = (V * ev) @ V.T
         if self.variability_ref > 0:  # eq. 14 weighting: inflate where C / s^2 is below the reference
             cov = cov * max(1.0, self.variability_ref / max(res.variability / res.sigma2, 1e-300))
-        if res.cov_prior is not None and not adds_information(cov, res.cov_prior[k]):
+        if check_information and res.cov_prior is not None and not adds_information(cov, res.cov_prior[k]):
             return information_refusal(t, cov, res.cov_prior[k], self.name, res.nis)
         sig = float(np.sqrt(ev[-1]))
         if not self.partial_fixes and sig > float(np.max(res.half[k])):
@@ -809,7 +813,11 @@ class PMHTMatcher:
             return [Fix.no_fix(float(t), res, self.name) for t in window.readings.t[len(window.readings) - T :]], (
                 np.zeros((0, 0))
             )
-        fixes = [self._fix(res, k) for k in range(len(res.t))]
+        # the batch is issued or refused as a whole, by the information its last scan adds over the INS prior
+        last = self._fix(res, len(res.t) - 1)
+        if not last.available:
+            return [Fix.no_fix(float(t), last.reason, self.name, last.score) for t in res.t], np.zeros((0, 0))
+        fixes = [self._fix(res, k, check_information=False) for k in range(len(res.t))]
         ok = [k for k, f in enumerate(fixes) if f.available]
         if not ok:
             return fixes, np.zeros((0, 0))

@@ -1,0 +1,46 @@
+"""The real-data integrity suite (issue 13), as a benchmark: ``magnav_ins.studies.suite`` (its docstring says what
+is flown, against which maps, with which estimators and set-up) run from the project folder, where
+``../shared/data`` holds the Rio survey.
+
+    python bench/realdata.py --json [--quick] [--jobs 2] [--seeds N] [--only GROUP,...]
+
+Prints the per-case and per-group tables (stderr with ``--json``) and, with ``--json``, one line on stdout:
+``{"groups": {"osborne_tactical": {ESTIMATOR: {...}}, "osborne_navigation": {...}, "rio": {...}}}`` with, per
+estimator, the ``metrics.json`` keys ``rms_horizontal_m``, ``nees_mean``, ``fix_nees_mean``, ``hpl_exceedance``,
+``divergence_rate`` (and ``max_horizontal_m``, ``availability``, ``hpl_median_m``, ``runs``) plus
+``free_rms_horizontal_m``, pooled over the group's cases and runs; ``wall_s`` and the job count are printed with
+the tables. The same suite: ``magnav-ins suite``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RIO_SURVEY = ROOT.parent / "shared" / "data" / "rio_magnetic" / "rio-magnetic.csv.xz"
+
+
+def main(argv: list[str] | None = None) -> int:
+    from magnav_ins.studies.suite import report, run_suite
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--json", action="store_true", help="print the group figures as one JSON line on stdout")
+    p.add_argument("--quick", action="store_true", help="the CI subset (under 3 minutes on 2 cores)")
+    p.add_argument("--seeds", type=int, default=1, help="Monte Carlo runs per case (default 1)")
+    p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    p.add_argument("--only", default=None, help="comma-separated groups to run (default all)")
+    args = p.parse_args(argv)
+    only = tuple(args.only.split(",")) if args.only else None
+    res = run_suite(quick=args.quick, seeds=args.seeds, jobs=args.jobs, only=only, rio_survey=RIO_SURVEY)
+    text = report(res) + f" with {args.jobs} jobs"
+    print(text, file=sys.stderr if args.json else sys.stdout)
+    if args.json:
+        print(json.dumps({"groups": res.groups}, allow_nan=False))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

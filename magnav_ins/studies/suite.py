@@ -1,0 +1,298 @@
+"""The real-data integrity suite (issue 13): every estimator with default matcher and fuser settings, flown over
+real survey lines with their own recorded readings, matched against maps gridded without those lines.
+
+Groups (a *case* is one survey line flown at one speed with one IMU grade):
+
+* ``osborne_tactical``, ``osborne_navigation``: the 22 tie lines of ``builtin:osborne-tie-lines`` (the 1990
+  Osborne survey, Queensland) against ``builtin:osborne-magnetic`` (gridded from the east-west flight lines only),
+  at 50, 65 and 80 m/s, with a tactical (HG-1700 class) and a navigation-grade (H764-G class) IMU.
+* ``rio``: the long east-west tie lines (``TIE``, the stubs under 20 km at the survey's edge left out) of the 1978
+  Rio de Janeiro survey (``../shared/data/rio_magnetic/rio-magnetic.csv.xz``, CC-BY-NC-4.0: studies only, never
+  shipped) against a grid of its 128 north-south flight lines (``LINE``) only, read through the survey column
+  mapping, at the same speeds, tactical IMU. Skipped, with the reason, when the file is not there.
+
+Estimators (:data:`ESTIMATORS`, the same for every case, nothing tuned per case): ``ml+ukf``, ``pmht+ukf``,
+``particle_ins+ukf``, ``ml+graph``; ``bayes_grid+ukf`` needs a vector map and both surveys are scalar total field.
+Matchers and fusers take their defaults. The set-up, stated once: 1 nT noise added to the real readings, taken
+every 0.5 s (Rio: 1 s, its survey sampled every ~100 m), the IMU at 10 Hz (straight lines: coning is negligible),
+the vertical channel held at the survey height (a barometer's job, as in every study), batch sections of
+:data:`WINDOW` readings matched every :data:`WINDOW` readings (non-overlapping sections, so the fixes are as
+independent as the map error lets them be), a recursive matcher asked for a fix as often, PMHT on its own default
+batch.
+
+Each case runs ``seeds`` Monte Carlo runs (default 1), with IMU errors, initial errors and sensor noise drawn from
+the run's seed; the runs of all cases are one study for :func:`magnav_ins.studies.runner.execute` (so ``--jobs``,
+Dask and the signal handling are the runner's), run ``i`` being case ``i // seeds``. Results are the
+``metrics.json`` figures (:mod:`.metrics`) pooled over each group's cases and runs, plus the free-inertial RMS.
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.errors import ConfigError
+from .runner import RunOutput, RunSummary
+from .scenario import FREE_INERTIAL
+
+OSBORNE_SURVEY = "builtin:osborne-tie-lines"
+OSBORNE_MAP = "builtin:osborne-magnetic"
+#: where the project keeps the Rio survey (relative to the project folder, as ``../shared/data``)
+RIO_SURVEY_DEFAULT = Path("..") / "shared" / "data" / "rio_magnetic" / "rio-magnetic.csv.xz"
+#: the Rio survey as downloaded: our column name -> the file's
+RIO_COLUMNS = {"height_ellipsoidal_m": "height_ell_m", "line": "line_number"}
+#: Rio tie lines shorter than this are stubs at the survey's edge (9-29 readings), left out (m)
+RIO_MIN_LINE_M = 20e3
+#: Rio map node spacing (m): flight lines 1 km apart, readings ~100 m apart along them
+RIO_SPACING_M = 250.0
+RIO_READING_INTERVAL_S = 1.0
+
+GROUPS = ("osborne_tactical", "osborne_navigation", "rio")
+SPEEDS_MPS = (50.0, 65.0, 80.0)
+QUICK_SPEEDS_MPS = (65.0,)
+IMU_RATE_HZ = 10.0
+READING_INTERVAL_S = 0.5
+READING_NOISE_NT = 1.0
+#: readings per batch-matcher section and between fix attempts (30 s at 0.5 s)
+WINDOW = 60
+
+ESTIMATORS: tuple[dict[str, Any], ...] = (
+    {"name": "ml+ukf", "matcher": {"kind": "ml"}, "fusion": {"kind": "ukf"}, "window": WINDOW, "match_every": WINDOW},
+    {"name": "pmht+ukf", "matcher": {"kind": "pmht"}, "fusion": {"kind": "ukf"}},
+    {"name": "particle_ins+ukf", "matcher": {"kind": "particle_ins"}, "fusion": {"kind": "ukf"},
+     "match_every": WINDOW},
+    {"name": "ml+graph", "matcher": {"kind": "ml"}, "fusion": {"kind": "graph"}, "window": WINDOW,
+     "match_every": WINDOW},
+)  # fmt: skip
+
+#: the figures kept per estimator (``metrics.json`` keys) besides ``free_rms_horizontal_m`` and ``runs``
+KEYS = (
+    "rms_horizontal_m",
+    "max_horizontal_m",
+    "nees_mean",
+    "fix_nees_mean",
+    "hpl_exceedance",
+    "hpl_median_m",
+    "availability",
+    "divergence_rate",
+)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One survey line flown at ``speed_mps`` with IMU ``grade``; ``map_keys`` / ``trajectory_keys``: further
+    ``[map]`` / ``[trajectory]`` scenario keys (column mapping, line types, grid spacing)."""
+
+    group: str
+    survey: str
+    map_path: str
+    line: int
+    speed_mps: float
+    grade: str
+    reading_interval_s: float = READING_INTERVAL_S
+    map_keys: tuple[tuple[str, Any], ...] = ()
+    trajectory_keys: tuple[tuple[str, Any], ...] = ()
+
+    @property
+    def name(self) -> str:
+        return f"{self.group}:{self.line}@{self.speed_mps:g}"
+
+    def scenario(self, estimators: tuple[dict[str, Any], ...] = ESTIMATORS):
+        """The case as a validated :class:`~magnav_ins.studies.scenario.Scenario`."""
+        from .scenario import scenario_from_dict
+
+        data = {
+            "name": self.name,
+            "seed": zlib.crc32(self.name.encode("utf-8")),
+            "trajectory": {"kind": "survey_line", "survey": self.survey, "line": self.line,
+                           "speed_mps": self.speed_mps, **dict(self.trajectory_keys)},
+            "imu": {"grade": self.grade, "rate_hz": IMU_RATE_HZ},
+            "map": {"path": self.map_path, "kind": "total_field_anomaly_nt", **dict(self.map_keys)},
+            "sensor": {"kind": "scalar_magnetometer", "source": "survey", "sigma": READING_NOISE_NT,
+                       "interval_s": self.reading_interval_s},
+            "estimator": [dict(e) for e in estimators],
+        }  # fmt: skip
+        return scenario_from_dict(data)
+
+
+def osborne_cases(quick: bool) -> list[Case]:
+    """Every Osborne tie line (``quick``: four spread over the survey) at each speed, for both grades."""
+    from ..maps.builtin import load_survey_lines
+
+    lines = [int(x) for x in load_survey_lines(OSBORNE_SURVEY).line_ids()]
+    if quick:
+        lines = [lines[i] for i in np.linspace(0, len(lines) - 1, 4).round().astype(int)]
+    speeds = QUICK_SPEEDS_MPS if quick else SPEEDS_MPS
+    return [
+        Case(f"osborne_{grade}", OSBORNE_SURVEY, OSBORNE_MAP, ln, v, grade)
+        for grade in ("tactical", "navigation")
+        for ln in lines
+        for v in speeds
+    ]
+
+
+def rio_cases(survey: Path, quick: bool) -> tuple[list[Case], str]:
+    """The Rio cases (the long tie lines; ``quick``: two) or none and the reason."""
+    if not survey.is_file():
+        return [], f"{survey}: not found (the Rio survey lives in ../shared/data beside the project)"
+    from ..core.frames import latlon_to_meters
+    from ..maps import io as maps_io
+
+    s = maps_io.read_survey(survey, columns=RIO_COLUMNS).of_type("TIE")
+    lines = []
+    for ln in s.line_ids():
+        m = s.line == ln
+        dn, de = latlon_to_meters(np.ptp(s.lat[m]), np.ptp(s.lon[m]), float(np.mean(s.lat[m])))
+        if np.hypot(dn, de) >= RIO_MIN_LINE_M:
+            lines.append(int(ln))
+    if quick:
+        lines = lines[:2]
+    map_keys = (("columns", RIO_COLUMNS), ("line_type", "LINE"), ("grid_spacing_m", RIO_SPACING_M))
+    traj_keys = (("columns", RIO_COLUMNS), ("line_type", "TIE"))
+    speeds = QUICK_SPEEDS_MPS if quick else SPEEDS_MPS
+    path = str(survey.resolve())
+    return [
+        Case("rio", path, path, ln, v, "tactical", RIO_READING_INTERVAL_S, map_keys, traj_keys)
+        for ln in lines
+        for v in speeds
+    ], ""
+
+
+@dataclass(frozen=True)
+class SuiteModel:
+    """A :class:`~magnav_ins.studies.runner.StudyModel` over many cases: run ``i`` is run ``i % seeds`` of case
+    ``i // seeds`` (its seed the runner's ``i``-th spawned sequence); every case has the same estimators."""
+
+    cases: tuple[Case, ...]
+    seeds: int = 1
+    name: str = "realdata suite"
+    _models: dict[int, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    def estimator_names(self) -> tuple[str, ...]:
+        return (*(e["name"] for e in ESTIMATORS), FREE_INERTIAL)
+
+    def case_of(self, index: int) -> Case:
+        return self.cases[index // self.seeds]
+
+    def run(self, seed: np.random.SeedSequence) -> RunOutput:
+        from .model import PipelineModel
+
+        index = int(seed.spawn_key[-1])
+        k = index // self.seeds
+        if k not in self._models:  # a worker keeps the models of its cases (truth and map memoised by model.py)
+            self._models[k] = PipelineModel(self.cases[k].scenario())
+        return self._models[k].run(seed)
+
+
+def pooled(summaries: list[RunSummary]) -> dict[str, dict[str, Any]]:
+    """Each estimator's figures (:data:`KEYS`) over ``summaries`` (runs of any cases), with ``runs`` and the
+    free-inertial baseline's RMS as ``free_rms_horizontal_m``."""
+    from . import metrics as M
+
+    free = M.aggregate([s.estimators[FREE_INERTIAL].metrics for s in summaries], None, FREE_INERTIAL)
+    out: dict[str, dict[str, Any]] = {}
+    for name in (e["name"] for e in ESTIMATORS):
+        es = [s.estimators[name] for s in summaries]
+        m = M.aggregate([e.metrics for e in es], es[0].matcher, es[0].fusion)
+        out[name] = {**{k: m[k] for k in KEYS}, "runs": len(es), "free_rms_horizontal_m": free["rms_horizontal_m"]}
+    return out
+
+
+@dataclass
+class SuiteResult:
+    """``groups``: per group the pooled figures per estimator, or ``{"skipped": reason}``; ``cases``: per case
+    (name -> ``(Case, figures)``); ``wall_s``; ``runs``."""
+
+    groups: dict[str, Any]
+    cases: list[tuple[Case, dict[str, dict[str, Any]]]]
+    wall_s: float
+    runs: int
+
+
+def run_suite(
+    *,
+    quick: bool = False,
+    seeds: int = 1,
+    jobs: int = 1,
+    only: tuple[str, ...] | None = None,
+    rio_survey: Path = RIO_SURVEY_DEFAULT,
+    scheduler: Any = None,
+    quiet: bool = True,
+) -> SuiteResult:
+    """Run the suite (module docstring); ``only`` limits it to some groups."""
+    if seeds < 1:
+        raise ConfigError(f"--seeds must be >= 1, got {seeds}")
+    wanted = tuple(GROUPS if not only else only)
+    unknown = [g for g in wanted if g not in GROUPS]
+    if unknown:
+        raise ConfigError(f"unknown suite group(s) {unknown}; expected some of {', '.join(GROUPS)}")
+    from .runner import execute
+
+    t0 = time.perf_counter()
+    cases = [c for c in osborne_cases(quick) if c.group in wanted]
+    skipped: dict[str, str] = {}
+    if "rio" in wanted:
+        rio, why = rio_cases(Path(rio_survey), quick)
+        cases += rio
+        if why:
+            skipped["rio"] = why
+    for g in GROUPS:
+        if g not in wanted:
+            skipped[g] = "not asked for"
+    model = SuiteModel(tuple(cases), seeds)
+    summaries = execute(model, len(cases) * seeds, 0, jobs=jobs, scheduler=scheduler, quiet=quiet) if cases else []
+    per_case = [
+        (c, pooled(summaries[k * seeds : (k + 1) * seeds])) for k, c in enumerate(cases)
+    ]  # runs are returned in order
+    groups: dict[str, Any] = {}
+    for g in GROUPS:
+        runs = [s for k, c in enumerate(cases) if c.group == g for s in summaries[k * seeds : (k + 1) * seeds]]
+        groups[g] = pooled(runs) if runs else {"skipped": skipped.get(g, "no case")}
+    return SuiteResult(groups, per_case, time.perf_counter() - t0, len(summaries))
+
+
+def _fmt(x: Any, pct: bool = False) -> str:
+    if x is None:
+        return "-"
+    if pct:
+        return f"{100.0 * float(x):.1f}%"
+    x = float(x)
+    return f"{x:.3g}" if abs(x) >= 1e4 else f"{x:.1f}"
+
+
+TABLE_HEADER = (
+    f"{'case':28s} {'estimator':17s} {'RMS':>8s} {'max':>8s} {'NEES':>7s} {'fixNEES':>8s} {'HPLexc':>7s} "
+    f"{'avail':>6s} {'div':>6s} {'free':>8s}"
+)
+
+
+def table_rows(name: str, figures: dict[str, dict[str, Any]]) -> list[str]:
+    """Text rows of one case or group: RMS, max, NEES, fix NEES, HPL exceedance, availability, divergence, free
+    RMS per estimator."""
+    return [
+        f"{name:28s} {est:17s} {_fmt(m['rms_horizontal_m']):>8s} {_fmt(m['max_horizontal_m']):>8s} "
+        f"{_fmt(m['nees_mean']):>7s} {_fmt(m['fix_nees_mean']):>8s} {_fmt(m['hpl_exceedance'], True):>7s} "
+        f"{_fmt(m['availability'], True):>6s} {_fmt(m['divergence_rate'], True):>6s} "
+        f"{_fmt(m['free_rms_horizontal_m']):>8s}"
+        for est, m in figures.items()
+    ]
+
+
+def report(result: SuiteResult) -> str:
+    """The per-case and per-group tables as text."""
+    lines = [TABLE_HEADER]
+    for c, figs in result.cases:
+        lines += table_rows(c.name, figs)
+    lines += ["", TABLE_HEADER]
+    for g, figs in result.groups.items():
+        if "skipped" in figs:
+            lines.append(f"{g:28s} skipped: {figs['skipped']}")
+        else:
+            lines += table_rows(g, figs)
+    lines.append(f"\n{len(result.cases)} cases, {result.runs} runs, {result.wall_s:.0f} s")
+    return "\n".join(lines)

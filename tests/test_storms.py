@@ -1,0 +1,246 @@
+"""Storms (2009, seed 004): the Bayes grid's R rule (sec. 3.4.2.4), the 2-D constant-velocity Kalman filter (sec.
+3.4.1), the wandering hallway trajectories (sec. 4.4.1.1) and the Table 4.1 study pieces (fixed initial offset,
+``rms_after_first_fix_m``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matcher_scenarios import KIND_V, ORIGIN, latlon, local, nav_estimate
+
+from magnav_ins.aiding.fusion import ImuNoise, make_fuser
+from magnav_ins.aiding.fusion.cv_kf import cv_process_noise, cv_transition
+from magnav_ins.aiding.matchers import BayesGridMatcher
+from magnav_ins.aiding.matchers.bayes_grid import storms_sigma
+from magnav_ins.core.errors import ConfigError
+from magnav_ins.core.types import LAYOUT_15, FieldReadings, Fix, ImuBatch, NavEstimate, NavState
+from magnav_ins.ins.ground_path import Path2D, Wander, ground_path
+from magnav_ins.ins.imu_models import get_grade
+from magnav_ins.maps.grid import GridMap
+from magnav_ins.maps.tangent import geodetic_to_tangent
+from magnav_ins.studies import metrics as M
+
+SCEN = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
+NOISE = ImuNoise.from_grade(get_grade("tactical"))  # unused by the CV filter; the common make_fuser signature
+
+
+# ------------------------------------------------------------------------------------------------ the R rule
+def _linear_vector_map(a: float, b: float) -> GridMap:
+    """3-axis field x = a * north, y = b * east, z = 0 (nT; a, b in nT/m) on a 0.05 m grid, 40 m square."""
+    n_ax = np.arange(0.0, 40.0, 0.05)
+    e_ax = np.arange(0.0, 40.0, 0.05)
+    gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
+    vals = np.stack([a * gn, b * ge, np.zeros_like(gn)], axis=-1)
+    return GridMap(n_ax, e_ax, vals, kind=KIND_V, frame="local", altitude_m=0.0, origin=ORIGIN)
+
+
+def _one_fix(bg: BayesGridMatcher, fmap: GridMap, truth: np.ndarray, prior_ne: np.ndarray, prior_sigma: float):
+    lat, lon = latlon(fmap, truth[0], truth[1])
+    z = fmap.value(lat, lon)[0]  # noise-free reading: the likelihood peaks at the truth
+    P = np.eye(2) * prior_sigma**2
+    st = bg.initiate(nav_estimate(fmap, 0.0, prior_ne, np.zeros(2), P))
+    st = bg.update(st, FieldReadings(np.array([0.0]), z[None], 10.0, KIND_V), fmap)
+    return bg.to_fix(st)
+
+
+def test_storms_sigma_of_a_gaussian_line_is_its_sigma():
+    x = np.arange(-10.0, 10.0, 0.01)
+    pdf = 7.0 * np.exp(-0.5 * (x - 0.3) ** 2 / 1.7**2)  # any scale
+    assert storms_sigma(pdf, x, 0.1587) == pytest.approx(1.7, rel=2e-3)
+    assert np.isnan(storms_sigma(np.zeros_like(x), x))
+
+
+def test_storms_r_is_the_likelihood_spread_not_the_posterior_by_hand():
+    """Reading sigma s = 10 nT, field gradients a = 10 nT/m (north) and b = 5 nT/m (east): along the lines through
+    the peak the likelihood is Gaussian with sigma s/a = 1 m (north) and s/b = 2 m (east). The prior is N(truth +
+    (0, 3) m, 1 m^2 I): the posterior along east is N(3 * 1 / (1/4 + 1) = 2.4 m, 1 / (1/4 + 1) = 0.8 m^2) and along
+    north N(0, 1/2 m^2). So, by hand (plus the grid's step^2/12 = 0.05^2/12):
+
+    * the fix (the posterior peak) is at truth + (0, 2.4) m;
+    * Storms' rule: R = diag(1, 4) m^2 (likelihood lines, distances to their means at the truth);
+    * the posterior rule: R = diag(0.5, 0.8) m^2 (the prior counted again);
+    * the old "spread" reading (distances to the peak at 2.4 m, outside the likelihood's 1-sigma band [-2, 2]):
+      east sigma = 2.4 m.
+    """
+    fmap = _linear_vector_map(10.0, 5.0)
+    truth = np.array([20.0, 17.0])
+    prior = truth + np.array([0.0, 3.0])
+    q = 0.05**2 / 12.0
+    kw = {"window_sigma": 10.0, "map_sigma": 0.0, "tail": 0.1587}
+    storms = _one_fix(BayesGridMatcher(covariance="storms", **kw), fmap, truth, prior, 1.0)
+    post = _one_fix(BayesGridMatcher(covariance="posterior", **kw), fmap, truth, prior, 1.0)
+    spread = _one_fix(BayesGridMatcher(covariance="spread", **kw), fmap, truth, prior, 1.0)
+    for fix in (storms, post, spread):
+        assert fix.available, fix.reason
+        assert local(fmap, fix.lat, fix.lon) == pytest.approx(truth + [0.0, 2.4], abs=0.03)
+    assert np.diag(storms.cov_ne) == pytest.approx([1.0 + q, 4.0 + q], rel=0.02)
+    assert np.diag(post.cov_ne) == pytest.approx([0.5 + q, 0.8 + q], rel=0.02)
+    assert np.sqrt(spread.cov_ne[1, 1] - q) == pytest.approx(2.4, rel=0.02)
+    assert storms.cov_ne[0, 1] == 0.0
+
+
+def test_bayes_grid_default_is_storms_rule_and_bad_rule_is_refused():
+    assert BayesGridMatcher().covariance == "storms"
+    with pytest.raises(ConfigError, match="'covariance'"):
+        BayesGridMatcher(covariance="curvature")
+    with pytest.raises(ConfigError, match="'map_sigma'"):
+        BayesGridMatcher(map_sigma=-1.0)
+
+
+def test_bayes_grid_uses_the_map_error_layer():
+    """A uniform error layer of 30 nT on the linear map widens the likelihood as sqrt(s^2 + 30^2) / a."""
+    fmap = _linear_vector_map(10.0, 5.0).with_error_layer(30.0, 1.0, "test")
+    truth = np.array([20.0, 17.0])
+    fix = _one_fix(BayesGridMatcher(window_sigma=10.0, tail=0.1587), fmap, truth, truth, 3.0)
+    s = np.hypot(10.0, 30.0)
+    assert np.sqrt(np.diag(fix.cov_ne)) == pytest.approx([s / 10.0, s / 5.0], rel=0.03)
+    exact = _one_fix(BayesGridMatcher(window_sigma=10.0, tail=0.1587, map_sigma=0.0), fmap, truth, truth, 3.0)
+    assert np.sqrt(np.diag(exact.cov_ne)) == pytest.approx([1.0, 2.0], rel=0.03)  # map_sigma = 0: stated exact
+
+
+# ------------------------------------------------------------------------------------------------ the CV KF
+def _estimate(ne=(0.0, 0.0), v=(0.5, 0.0), sig=1.5, sig_v=0.05) -> NavEstimate:
+    lat, lon = ORIGIN[0], ORIGIN[1]
+    P = np.eye(15) * 1e-6
+    P[0, 0] = P[1, 1] = sig**2
+    P[3, 3] = P[4, 4] = sig_v**2
+    nav = NavState(0.0, lat, lon, 0.0, np.array([v[0], v[1], 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
+    return NavEstimate(nav, P)
+
+
+def test_cv_process_noise_is_storms_eq_3_4():
+    Qd = cv_process_noise(0.1, 0.08) * 1e3
+    assert Qd[0, 0] == pytest.approx(0.0021, abs=5e-5)
+    assert Qd[0, 2] == pytest.approx(0.0320, abs=5e-5)
+    assert Qd[2, 2] == pytest.approx(0.64, abs=1e-9)
+    assert np.allclose(cv_transition(0.1)[:2, 2:], 0.1 * np.eye(2))
+
+
+def test_cv_kf_propagation_and_update_match_the_kalman_equations():
+    f = make_fuser("cv_kf", _estimate(), NOISE, accel_sigma_mps2=0.08)
+    t = np.arange(1, 16) * 0.1  # 1.5 s in Storms' 0.1 s steps
+    f.propagate(ImuBatch(t, np.zeros((15, 3)), np.zeros((15, 3))))
+    P = np.diag([1.5**2, 1.5**2, 0.05**2, 0.05**2])
+    for _ in range(15):
+        P = cv_transition(0.1) @ P @ cv_transition(0.1).T + cv_process_noise(0.1, 0.08)
+    est = f.estimate()
+    n, e = geodetic_to_tangent(np.array([est.nav.lat]), np.array([est.nav.lon]), *ORIGIN)
+    assert (float(n[0]), float(e[0])) == pytest.approx((0.75, 0.0), abs=1e-6)
+    assert est.cov_ne == pytest.approx(P[:2, :2], rel=1e-9)
+    s = LAYOUT_15["vel"].start
+    assert est.P[s : s + 2, s : s + 2] == pytest.approx(P[2:, 2:], rel=1e-9)
+    assert np.isnan(est.P[LAYOUT_15["att"].start, LAYOUT_15["att"].start])  # not estimated
+    # update with a fix 1 m east of the filter, R = 0.1^2 I
+    R = np.eye(2) * 0.01
+    lat, lon = latlon(_dummy_frame(), np.array([0.75]), np.array([1.0]))
+    inn = f.correct(Fix(1.5, float(lat[0]), float(lon[0]), R, True, "", 0.0, "test"))
+    assert inn.accepted and inn.residual_ne == pytest.approx([0.0, 1.0], abs=1e-6)
+    H = np.eye(2, 4)
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    assert f.x[1] == pytest.approx(K[1, 1], rel=1e-6) and f.x[3] == pytest.approx(K[3, 1], rel=1e-6)
+    late = f.correct(Fix(1.0, float(lat[0]), float(lon[0]), R, True, "", 0.0, "test"))
+    assert not late.accepted and "no history" in late.reason
+
+
+def _dummy_frame() -> GridMap:
+    return GridMap(np.arange(3.0), np.arange(3.0), np.zeros((3, 3)), kind="total_field_anomaly_nt",
+                   frame="local", altitude_m=0.0, origin=ORIGIN)  # fmt: skip
+
+
+def test_cv_kf_turn_command_turns_the_velocity_with_the_gyro():
+    """A quarter turn at 0.5 rad/s: with the command the velocity ends east at the same speed, without it the
+    filter keeps going north."""
+    n = 314
+    t = np.arange(1, n + 1) * 0.01
+    gyro = np.zeros((n, 3))
+    gyro[:, 2] = 0.5 + 7.292115e-5 * np.sin(ORIGIN[0]) * -1.0  # body z rate incl. the Earth-rate term removed inside
+    imu = ImuBatch(t, gyro, np.zeros((n, 3)))
+    turned = make_fuser("cv_kf", _estimate(), NOISE, turn_command=True)
+    turned.propagate(imu)
+    straight = make_fuser("cv_kf", _estimate(), NOISE)
+    straight.propagate(imu)
+    assert turned.x[2:] == pytest.approx([0.0, 0.5], abs=2e-3)
+    assert straight.x[2:] == pytest.approx([0.5, 0.0], abs=1e-12)
+    # the turned track is the quarter circle of radius v / rate = 1 m
+    assert turned.x[:2] == pytest.approx([1.0, 1.0], abs=5e-3)
+    with pytest.raises(ConfigError, match="accel_sigma_mps2"):
+        make_fuser("cv_kf", _estimate(), NOISE, accel_sigma_mps2=0.0)
+
+
+# ------------------------------------------------------------------------------------------------ ground path
+def test_ground_path_corner_is_filleted_and_nominal_speed_is_kept():
+    p = Path2D.from_points([[0.0, 1.0], [10.0, 1.0], [10.0, 6.0]], 1.0)
+    assert p.length == pytest.approx(10.0 + 5.0 - 2.0 + np.pi / 2.0, rel=1e-12)
+    pts, psi = p.at(np.array([0.0, 9.0, 9.0 + np.pi / 2.0, p.length]))
+    assert pts[1] == pytest.approx([9.0, 1.0]) and pts[2] == pytest.approx([10.0, 2.0])
+    assert pts[3] == pytest.approx([10.0, 6.0]) and psi[3] == pytest.approx(np.pi / 2.0)
+    tr = ground_path([[0.0, 1.0], [10.0, 1.0], [10.0, 6.0]], 0.5, 20.0, ORIGIN)
+    assert np.hypot(tr.v_n[:, 0], tr.v_n[:, 1]) == pytest.approx(0.5, rel=1e-4)
+    with pytest.raises(ConfigError, match="too short"):
+        Path2D.from_points([[0.0, 0.0], [0.5, 0.0], [0.5, 5.0]], 1.0)
+
+
+def test_wandering_runs_stay_in_the_hallway_and_are_reproducible():
+    pts = [[0.0, 1.143], [20.0, 1.143], [20.0, 10.0]]
+    w = Wander(accel_sigma_mps2=0.08, cross_gain=0.1, along_gain=0.1, max_offset_m=0.8)
+    a = ground_path(pts, 0.5, 20.0, ORIGIN, wander=w, rng=np.random.default_rng(3))
+    b = ground_path(pts, 0.5, 20.0, ORIGIN, wander=w, rng=np.random.default_rng(3))
+    assert np.array_equal(a.lat, b.lat)
+    n, e = geodetic_to_tangent(a.lat, a.lon, *ORIGIN)
+    main = n < 18.5
+    assert np.max(np.abs(e[main] - 1.143)) < 0.85  # max_offset plus the spline between the 0.1 s points
+    assert np.std(e[main] - 1.143) > 0.02  # it does wander
+    speed = np.hypot(a.v_n[:, 0], a.v_n[:, 1])
+    assert 0.4 < np.mean(speed) < 0.6
+    with pytest.raises(ConfigError, match="no wandering run"):
+        ground_path(
+            pts, 0.5, 20.0, ORIGIN, wander=Wander(max_offset_m=1e-4, max_attempts=3), rng=np.random.default_rng(1)
+        )
+
+
+# ------------------------------------------------------------------------------------------------ study pieces
+def test_rms_after_first_fix_pools_each_run_from_its_own_first_accepted_fix():
+    t = np.arange(10.0)
+    assert M.first_fix_index(t, [2.5, 4.0], [False, True]) == 4
+    assert M.first_fix_index(t, [2.5], [False]) is None
+    runs = [
+        M.RunMetrics(e=np.r_[np.full(4, 9.0), np.full(6, 1.0)], nees=np.zeros(10), first_fix_index=4),
+        M.RunMetrics(e=np.r_[np.full(2, 9.0), np.full(8, 2.0)], nees=np.zeros(10), first_fix_index=2),
+        M.RunMetrics(e=np.full(10, 50.0), nees=np.zeros(10), first_fix_index=None),  # never fixed: left out
+    ]
+    doc = M.aggregate(runs, "bayes_grid", "cv_kf")
+    assert doc["rms_after_first_fix_m"] == pytest.approx(np.sqrt((6 * 1.0 + 8 * 4.0) / 14.0))
+
+
+def test_storms_scenarios_validate_with_fixed_offset():
+    from magnav_ins.studies.model import perturbed_init
+    from magnav_ins.studies.scenario import load_scenario
+
+    sc = load_scenario(SCEN / "storms_hallway.toml")
+    assert sc.init.position_offset_m == (0.0, -1.145)
+    assert sc.trajectory.kind == "ground_path" and sc.trajectory.wander["max_offset_m"] == 0.8
+    turn = load_scenario(SCEN / "storms_hallway_turn.toml")
+    assert turn.estimators[0].fusion == {"kind": "cv_kf", "accel_sigma_mps2": 0.08, "turn_command": True}
+    from magnav_ins.studies.model import build_truth
+
+    truth = build_truth(sc)
+    for seed in (1, 2):
+        s0 = perturbed_init(sc, truth, np.random.default_rng(seed))
+        dn, de = geodetic_to_tangent(np.array([s0.lat]), np.array([s0.lon]), truth.lat[0], truth.lon[0], 0.0)
+        assert (float(dn[0]), float(de[0])) == pytest.approx((0.0, -1.145), abs=1e-6)
+
+
+def test_storms_turn_study_two_runs(tmp_path):
+    """Two runs of the turn-command Monte Carlo (the 100-run figures are in bench/storms_table41.py)."""
+    from magnav_ins.studies.model import PipelineModel
+    from magnav_ins.studies.runner import run_study
+    from magnav_ins.studies.scenario import load_scenario
+
+    sc = load_scenario(SCEN / "storms_hallway_turn.toml")
+    doc = run_study(PipelineModel(sc), 2, sc.seed, plots=False)
+    e = doc["estimators"]["bayes_grid+cv_kf_turn"]
+    assert e["fusion"] == "cv_kf" and e["availability"] > 0.9
+    assert e["rms_after_first_fix_m"] < 0.3
+    assert doc["free_inertial"]["rms_horizontal_m"] > 10.0

@@ -1,0 +1,53 @@
+"""The real-data suite's mechanics (``magnav_ins.studies.suite``) on two short Osborne cases: runs map to cases,
+groups pool their cases, a missing survey is a stated skip, and the JSON line has the issue's shape."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from magnav_ins.core.errors import ConfigError
+from magnav_ins.studies import suite
+
+
+def test_suite_groups_pool_their_cases(monkeypatch, tmp_path):
+    short = (("duration_s", 90.0),)
+    cases = [
+        suite.Case("osborne_tactical", suite.OSBORNE_SURVEY, suite.OSBORNE_MAP, 10152, 65.0, "tactical",
+                   trajectory_keys=short),
+        suite.Case("osborne_navigation", suite.OSBORNE_SURVEY, suite.OSBORNE_MAP, 10153, 80.0, "navigation",
+                   trajectory_keys=short),
+    ]  # fmt: skip
+    monkeypatch.setattr(suite, "osborne_cases", lambda quick: cases)
+    res = suite.run_suite(seeds=2, rio_survey=tmp_path / "absent.csv.xz")
+    assert res.runs == 4 and [c.name for c, _ in res.cases] == [
+        "osborne_tactical:10152@65",
+        "osborne_navigation:10153@80",
+    ]
+    assert "not found" in res.groups["rio"]["skipped"]
+    names = [e["name"] for e in suite.ESTIMATORS]
+    for g in ("osborne_tactical", "osborne_navigation"):
+        assert list(res.groups[g]) == names
+        for m in res.groups[g].values():
+            assert m["runs"] == 2 and m["free_rms_horizontal_m"] > 0
+            assert {"rms_horizontal_m", "nees_mean", "fix_nees_mean", "hpl_exceedance", "divergence_rate"} <= set(m)
+    # one case per group here: the group figures are that case's
+    assert res.groups["osborne_tactical"] == res.cases[0][1]
+    line = json.dumps({"groups": res.groups}, allow_nan=False)
+    assert set(json.loads(line)["groups"]) == {"osborne_tactical", "osborne_navigation", "rio"}
+    assert "osborne_tactical:10152@65" in suite.report(res)
+
+
+def test_suite_refuses_unknown_groups():
+    with pytest.raises(ConfigError, match="unknown suite group"):
+        suite.run_suite(only=("osborne",))
+
+
+def test_suite_command_is_listed_and_refuses_bad_options(capsys):
+    from magnav_ins import cli
+
+    assert "suite" in cli.COMMAND_MODULES
+    assert cli.main(["suite", "--only", "osborne", "--quiet"]) == 2
+    assert "unknown suite group" in capsys.readouterr().err
+    assert cli.main(["suite", "--seeds", "0", "--quiet"]) == 2
