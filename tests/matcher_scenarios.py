@@ -62,7 +62,8 @@ def nav_estimate(fmap: Any, t: float, ne: np.ndarray, v_ne: np.ndarray, P_ne: np
 def exact(fmap: GridMap) -> GridMap:
     """The map with a zero error layer: a synthetic map whose readings are drawn from it is the truth, so the
     matchers must not add the default map error of a map that does not know its error (``map_error.py``)."""
-    return fmap.with_error_layer(0.0, float(fmap.metadata.get("correlation_length_m", 1.0)), "synthetic: exact")
+    ell = float(fmap.metadata.get("correlation_length_m", 1.0)) * np.sqrt(2.0)  # the field's 1/e length
+    return fmap.with_error_layer(0.0, ell, "synthetic: exact")
 
 
 def flat_like(fmap: GridMap) -> GridMap:
@@ -199,8 +200,9 @@ SCENARIOS: dict[str, Scenario] = {
 @dataclass(frozen=True)
 class ErrorField:
     """A truth field, and the map a matcher is given: truth plus a correlated error field of known 1-sigma
-    ``sigma`` and correlation length ``ell_m`` (:func:`magnav_ins.maps.synthetic.gaussian_random_field`, the
-    kernel of ``map_error.py``), with its error layer (``with_layer``) and without (``without_layer``)."""
+    ``sigma`` and correlation length ``ell_m`` (the 1/e lag of the kernel of ``map_error.py``, drawn by
+    :func:`magnav_ins.maps.synthetic.gaussian_random_field` with its length scale ``ell_m / sqrt(2)``), with its
+    error layer (``with_layer``) and without (``without_layer``)."""
 
     truth: GridMap
     with_layer: GridMap
@@ -223,7 +225,7 @@ def error_field(
 
     rng = np.random.default_rng(seed)
     truth = random_field_map(shape, spacing_m, ell_field_m, sigma_field, rng, kind=KIND_TF, origin=ORIGIN)
-    err = gaussian_random_field(shape, spacing_m, ell_m, sigma, rng)
+    err = gaussian_random_field(shape, spacing_m, ell_m / np.sqrt(2.0), sigma, rng)
     noisy = truth.with_values(np.asarray(truth.values) + err)
     return ErrorField(exact(truth), noisy.with_error_layer(sigma, ell_m, "known"), noisy, sigma, ell_m)
 

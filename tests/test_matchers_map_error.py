@@ -2,7 +2,7 @@
 truth (Monte Carlo, closed forms), where the map error comes from, and per matcher the issue-13 check: on a map
 = truth + a correlated error field of known sigma and correlation length, the fixes' NEES is within [1, 3] when the
 map carries that error layer and clearly above 3 when it does not (then the matcher assumes the stated default,
-10 % of the map's std over 1.5 node spacings, which under-states this error)."""
+10 % of the map's std over 2 node spacings, which under-states this error)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from magnav_ins.maps.synthetic import gaussian_random_field, random_field_map
 # ---------------------------------------------------------------------------------------------- machinery
 def test_correlation_kernel_and_unknown_length():
     assert me.correlation(0.0, 150.0) == 1.0
-    assert me.correlation(150.0, 150.0) == pytest.approx(np.exp(-0.5))
+    assert me.correlation(150.0, 150.0) == pytest.approx(np.exp(-1.0))  # ell is the 1/e lag
     np.testing.assert_array_equal(me.correlation(np.array([0.0, 1.0]), float("nan")), [1.0, 0.0])
 
 
@@ -26,8 +26,10 @@ def test_kernel_is_the_synthetic_random_fields_covariance():
     """The kernel of map_error.py is the one gaussian_random_field draws: its empirical correlation at lag ell."""
     from magnav_ins.maps.synthetic import empirical_correlation
 
-    f = gaussian_random_field((400, 400), 5.0, 40.0, 1.0, np.random.default_rng(3))
-    assert empirical_correlation(f, 8, axis=0) == pytest.approx(float(me.correlation(40.0, 40.0)), abs=0.05)
+    f = gaussian_random_field((400, 400), 5.0, 40.0, 1.0, np.random.default_rng(3))  # 1/e lag 40 sqrt(2) m
+    assert empirical_correlation(f, 8, axis=0) == pytest.approx(
+        float(me.correlation(40.0, 40.0 * np.sqrt(2))), abs=0.05
+    )
 
 
 def test_effective_count_limits():
@@ -40,7 +42,7 @@ def test_markov_coefficient_has_the_kernels_integral_scale():
     ds, ell = 1.0, 150.0
     lag = np.arange(0, 20000) * ds
     integral_markov = float(np.sum(me.markov_coefficient(lag, ell))) * ds
-    integral_kernel = ell * np.sqrt(np.pi / 2)
+    integral_kernel = ell * np.sqrt(np.pi) / 2
     assert integral_markov == pytest.approx(integral_kernel, rel=0.01)
 
 
@@ -84,7 +86,7 @@ def test_resolve_precedence_option_layer_default():
     d = me.resolve_map_error(fmap)
     assert d.source == "default"
     assert d.uniform_sigma == pytest.approx(0.1 * np.nanstd(fmap.values))
-    assert d.correlation_m == pytest.approx(15.0)
+    assert d.correlation_m == pytest.approx(20.0)
     lay = me.resolve_map_error(fmap.with_error_layer(np.full(fmap.shape, 4.0), 80.0))
     assert lay.source == "layer" and lay.correlation_m == 80.0
     lat, lon = fmap.from_local(np.array([100.0]), np.array([100.0]))
@@ -108,14 +110,14 @@ def _nees(kind: str, config: dict, fmap, trial, trials: int) -> tuple[float, int
 
 @pytest.fixture(scope="module")
 def section_maps():
-    # truth: 100 nT field, 40 m correlation, 5 m grid; map error 25 nT over 20 m (25 % of the field's std: the
-    # default for a map without a layer would say about 10 nT, uncorrelated beyond 7.5 m)
-    return error_field(7, (300, 300), 5.0, 40.0, 100.0, 25.0, 20.0)
+    # truth: 100 nT field, 40 m length scale, 5 m grid; map error 25 nT correlated over 28 m (1/e; 25 % of the
+    # field's std: the default for a map without a layer would say about 10 nT, correlated over 10 m)
+    return error_field(7, (300, 300), 5.0, 40.0, 100.0, 25.0, 20.0 * np.sqrt(2))
 
 
 @pytest.fixture(scope="module")
 def particle_maps():
-    return error_field(7, (400, 400), 2.0, 25.0, 50.0, 12.0, 15.0)
+    return error_field(7, (400, 400), 2.0, 25.0, 50.0, 12.0, 15.0 * np.sqrt(2))
 
 
 @pytest.mark.parametrize("kind", ["ml", "mlr", "abl"])

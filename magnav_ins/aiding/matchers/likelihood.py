@@ -24,12 +24,28 @@ profile, removes a constant bias, 003 sec. 4.6) and ``difference`` (successive d
   of side ``bin_size_m`` centred on each node.
 
 The scan runs over a search window around the prior (the thesis' suggested improvement; ``search_window=True``,
-half-width ``window_sigma`` times the prior 1-sigma) or over the whole grid map (``search_window=False``).
-The fix covariance is the second moment of the normalised likelihood about the fix plus the grid quantisation
-``step^2/12``: for a single peak this is the Laplace approximation of the estimator covariance; ambiguity inflates
-it. "No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
-``min_variability`` times s), a likelihood spread wider than ``max_fix_sigma_m``, an MLR ratio or ABL peak below
-threshold.
+half-width ``window_sigma`` times the prior 1-sigma, widened up to ``window_growth`` times by 2 while the
+likelihood's peak region reaches its edge) or over the whole grid map (``search_window=False``).
+
+What the fix covariance contains (issue 13; :mod:`.map_error`). The scan's likelihood uses the variance
+``sigma_reading^2 + sigma_map^2`` (the map's error layer at the section, or ``map_sigma``, or the stated default)
+plus the node error ``|grad|^2 step^2 / 12``, as if the readings were independent. They are not: the map error is
+correlated over its correlation length, and the INS track the section is slid along drifts. So before its
+moments are taken the surface is divided by a temperature: the sandwich factor (White 1982) of the section's full
+residual covariance ``sigma_s^2 I + D C D + node error + G P_drift G'`` (map error correlation ``C``, INS drift
+over the section from the growth of the window's covariances, :func:`ins_drift_rate`) against the scan's
+diagonal one, times the section's misfit chi-square per degree of freedom when that exceeds its 99 % quantile (the
+residuals at the fix are larger than the model says), times ``K / new readings`` when the window shares readings
+with the previous fix's window (``count_overlap``: each reading's evidence is issued once). The fix covariance is
+then the second moment of the tempered likelihood about the fix (it covers every mode it holds) plus the grid
+quantisation ``step^2/12`` and ``min_fix_sigma_m^2`` (0 by default; the old knob for what the likelihood cannot
+see). ``honest=False`` skips the temperature (the thesis' likelihood).
+
+"No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
+``min_variability`` times the sensor sigma), an ambiguous likelihood (its 99.9 % region falls into several parts and
+those other than the best one's hold more than ``ambiguity_mass``; the reason gives the mass and the distance), a
+likelihood that still reaches the edge of the widened search window, a likelihood spread wider than
+``max_fix_sigma_m``, an MLR ratio or ABL peak below threshold.
 """
 
 from __future__ import annotations
@@ -128,7 +144,7 @@ class LikelihoodMatcher:
     Parameters (SI; field values in the map's unit): ``method`` "ml" | "mlr" | "abl"; ``ratio_threshold`` and
     ``min_distance_m`` (MLR); ``bin_size_m`` and ``peak_threshold`` (ABL); ``demean``, ``difference`` (section
     composition); ``search_window`` and ``window_sigma`` (search window = ``window_sigma`` prior sigmas, at least
-    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma; ``distance_step_m`` re-samples the section every that many metres of
+    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma overriding the map's error layer (0 = from the map: its layer, else the default of :mod:`.map_error`); ``distance_step_m`` re-samples the section every that many metres of
     INS-travelled distance before matching (Shockley's distance-sampled readings; ``None`` = as recorded); ``quantisation``: with the default resolution the scan step is refined (by
     bilinear interpolation) until the RMS map gradient times the step is at most this many reading sigmas, and the
     remaining node error ``|grad|^2 step^2 / 12`` is added to the likelihood variance (0 = native grid only);
@@ -136,7 +152,13 @@ class LikelihoodMatcher:
     a quarter of the window half-width); ``min_fix_sigma_m`` a 1-sigma (m) added in quadrature to the fix
     covariance for what the likelihood cannot see: map registration and resolution errors, and the shape error of
     the INS-indicated track over the section (with real readings against a gridded survey the likelihood curvature
-    alone gave fix sigmas under 1 m for fixes 200-400 m off; 0 = none); ``max_nodes`` cap on scanned nodes."""
+    alone gave fix sigmas under 1 m for fixes 200-400 m off; 0 = none); ``max_nodes`` cap on scanned nodes;
+    ``map_correlation_m`` overrides the map's error correlation length (m); ``honest`` applies the temperature;
+    ``ambiguity_mass`` (0.05; 1 = off); ``count_overlap``; ``track_error`` (INS drift in the section covariance);
+    ``window_growth`` (widenings of the search window). The module docstring says what the covariance contains.
+
+    The matcher remembers the time of the last reading of its last issued fix (``count_overlap``): one instance
+    serves one stream of windows (a window whose last reading is not newer starts a new stream)."""
 
     method: str = "ml"
     ratio_threshold: float = 2.0

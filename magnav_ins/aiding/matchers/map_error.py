@@ -11,18 +11,20 @@ estimated by cross-validation when a survey is gridded), else the stated default
 know its error.
 
 The default (a map from elsewhere, no layer): 1-sigma ``DEFAULT_ERROR_FRACTION_OF_STD`` (10 %) of the map's own
-standard deviation, uniform, correlated over ``DEFAULT_CORRELATION_NODES`` (1.5) node spacings. Evidence: the 22
+standard deviation, uniform, correlated over ``DEFAULT_CORRELATION_NODES`` (2) node spacings. Evidence: the 22
 Osborne tie lines (``builtin:osborne-tie-lines``, never used by ``builtin:osborne-magnetic``) differ from that map
 by 4-48 nT RMS after removing each line's mean (all lines: 30 nT; the map's standard deviation is 302 nT, so 10 %),
-and their along-line autocorrelation follows the Gaussian kernel below with ``ell`` = 150 m = 1.5 node spacings
-(0.75 at 100 m, 0.39 at 200 m, 0.06 at 350 m). A map that is not a grid (a road map's points, :class:`~magnav_ins.maps.track.TrackMap`)
+and their along-line autocorrelation follows the Gaussian kernel below with ``ell`` = 210 m = 2 node spacings
+(measured 0.75 at 100 m, 0.39 at 200 m, 0.06 at 350 m; the kernel gives 0.80, 0.40, 0.06). A map that is not a grid (a road map's points, :class:`~magnav_ins.maps.track.TrackMap`)
 is sampled where it was measured, not interpolated: without ``map_sigma`` it is taken as exact. It is one
 survey's figure, not a law: a map whose error is known
 should carry a layer, or the matcher should be given ``map_sigma``.
 
 Correlation model. The map error is a zero-mean Gaussian process with the squared-exponential correlation
-``rho(d) = exp(-d^2 / (2 ell^2))`` (the same kernel as :func:`magnav_ins.maps.synthetic.gaussian_random_field`,
-so a synthetic map error drawn there with ``correlation_length_m = ell`` is exactly this model). For a section of
+``rho(d) = exp(-(d / ell)^2)``: the correlation length ``ell`` (``GridMap.error_correlation_m``) is the lag where
+the correlation has fallen to 1/e, as :mod:`magnav_ins.maps.error_layer` measures it from the cross-validation
+residuals. :func:`magnav_ins.maps.synthetic.gaussian_random_field` draws this kernel with its length scale
+``l = ell / sqrt(2)`` (its correlation is ``exp(-r^2 / (2 l^2))``). For a section of
 ``K`` readings at positions ``(n_k, e_k)`` the residuals ``z_k - m(x_k)`` then have the covariance (the "full
 covariance" of a section)::
 
@@ -50,11 +52,11 @@ FloatArray = NDArray[np.float64]
 
 #: A map without an error layer: 1-sigma map error = this fraction of the map's standard deviation ...
 DEFAULT_ERROR_FRACTION_OF_STD = 0.10
-#: ... with a correlation length of this many node spacings (module docstring: the Osborne tie lines give 150 m on
+#: ... with a correlation length of this many node spacings (module docstring: the Osborne tie lines give 210 m on
 #: a 100 m grid).
-DEFAULT_CORRELATION_NODES = 1.5
-#: integral scale of the squared-exponential correlation, in units of ``ell``: int_0^inf rho(d) dd = ell sqrt(pi/2)
-INTEGRAL_SCALE = float(np.sqrt(np.pi / 2.0))
+DEFAULT_CORRELATION_NODES = 2.0
+#: integral scale of the correlation, in units of ``ell``: int_0^inf exp(-(d / ell)^2) dd = ell sqrt(pi) / 2
+INTEGRAL_SCALE = float(np.sqrt(np.pi) / 2.0)
 
 
 @dataclass(frozen=True)
@@ -120,12 +122,12 @@ def resolve_map_error(
 
 # ------------------------------------------------------------------------------------------------ correlation
 def correlation(d_m: ArrayLike, ell_m: float) -> FloatArray:
-    """Map-error correlation ``exp(-d^2 / (2 ell^2))`` at distance ``d_m`` (m); with an unknown (NaN) or zero
+    """Map-error correlation ``exp(-(d / ell)^2)`` at distance ``d_m`` (m); with an unknown (NaN) or zero
     ``ell_m`` the errors are uncorrelated (1 at d = 0, else 0)."""
     d = np.asarray(d_m, dtype=float)
     if not (np.isfinite(ell_m) and ell_m > 0):
         return (d == 0.0).astype(float)
-    return np.exp(-0.5 * (d / ell_m) ** 2)
+    return np.exp(-((d / ell_m) ** 2))
 
 
 def correlation_matrix(n: ArrayLike, e: ArrayLike, ell_m: float) -> FloatArray:
@@ -155,7 +157,7 @@ def effective_count(n: ArrayLike, e: ArrayLike, ell_m: float) -> float:
 
 def markov_coefficient(ds_m: ArrayLike, ell_m: float) -> FloatArray:
     """Correlation between successive readings ``ds_m`` (m) apart in a first-order Gauss-Markov approximation of
-    the map error along a track, ``exp(-ds / L)`` with ``L = ell sqrt(pi/2)`` so that its integral scale equals the
+    the map error along a track, ``exp(-ds / L)`` with ``L = ell sqrt(pi) / 2`` so that its integral scale equals the
     squared-exponential kernel's (a long section is then worth the same number of independent readings). 0 when
     ``ell`` is unknown."""
     ds = np.abs(np.asarray(ds_m, dtype=float))

@@ -76,6 +76,7 @@ from typing import Any
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
@@ -91,6 +92,8 @@ _CLOUD_TAIL_CHI2 = 9.0
 #: an increment is issued only if the cloud's mean and the increment are within the 99.9 % region (chi-square 2 dof)
 #: of the prior the cloud was drawn from: otherwise the likelihood peaks where there are no particles
 _PRIOR_CONSISTENCY_CHI2 = 13.8155
+#: the readings' forecast check scales an increment's covariance only above this chi-square quantile
+MISFIT_PROBABILITY = 0.99
 
 
 @dataclass
@@ -445,6 +448,10 @@ class ParticleFilter:
         r = np.linalg.inv(y)
         r = 0.5 * (r + r.T)
         z = r @ (ci @ mean - np.linalg.solve(p0, mu0))
+        n_nis = float(state.extra.get("nis_n", 0.0))
+        nis = float(state.extra.get("nis_sum", 0.0))
+        if n_nis > 0 and nis > float(stats.chi2.ppf(MISFIT_PROBABILITY, n_nis)):
+            r = r * (nis / n_nis)  # the readings missed their forecasts by more than the model allows
         sig = float(np.sqrt(np.linalg.eigvalsh(r)[-1]))
         max_sig = (
             self.max_fix_sigma_m
