@@ -230,7 +230,7 @@ def test_tlog_replay_issues_fixes_and_beats_free_inertial(sim, capsys):
     )  # fmt: skip
     rms, rms_free = float(np.sqrt(np.mean(err**2))), float(np.sqrt(np.mean(err_free**2)))
     assert rms < 0.7 * rms_free, (rms, rms_free)
-    assert np.mean(err[-30:]) < 0.5 * np.mean(err_free[-30:])
+    assert np.mean(err[-30:]) < 0.6 * np.mean(err_free[-30:])  # 2-3 honest fixes in 90 s (was 0.5 with 5 or more)
     assert "horizontal error vs the log's GNSS" in stdout and "fixes:" in stdout
 
 

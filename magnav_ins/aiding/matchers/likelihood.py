@@ -75,10 +75,10 @@ from ._local import (
 )
 from .map_error import (
     MapErrorModel,
-    likelihood_temperature,
     resolve_map_error,
     section_covariance,
     section_transform,
+    temperature_and_topup,
     whitened_misfit,
 )
 
@@ -426,8 +426,9 @@ class LikelihoodMatcher:
             n_fix, e_fix = float(surf.n[ki]), float(surf.e[kj])
         else:
             n_fix, e_fix = float(surf.n[k]), float(surf.e[k])
-        temp = self.temperature(surf, n_fix, e_fix) if (grid and self.honest) else 1.0
-        temp *= self._overlap_factor(surf)
+        temp, topup = self.honesty(surf, n_fix, e_fix) if (grid and self.honest) else (1.0, np.zeros((2, 2)))
+        overlap = self._overlap_factor(surf)
+        temp, topup = temp * overlap, topup * overlap
         logl = (logl - float(logl[k])) / temp  # tempered: the peak is 0
         lmax = 0.0
         if grid:
@@ -490,15 +491,15 @@ class LikelihoodMatcher:
             cov = np.array([[snn, sne], [sne, see]])
         else:
             cov = moments_about(p, surf.n, surf.e, n_fix, e_fix)
-        cov = cov + np.eye(2) * surf.step**2 / 12.0
+        cov = cov + topup + np.eye(2) * surf.step**2 / 12.0
         if not grid:  # road map: the vehicle is somewhere across the road
             cov = cov + np.eye(2) * self.track_sigma_m**2
         cov = cov + np.eye(2) * self.min_fix_sigma_m**2
         max_sig = self.max_fix_sigma_m
         if max_sig is None:
             max_sig = 0.25 * min(surf.half) / surf.grow
-        sig = float(np.sqrt(np.linalg.eigvalsh(cov)[-1]))
-        if sig > max_sig:
+        sig = float(np.sqrt(np.linalg.eigvalsh(cov)[0 if (grid and self.search_window) else -1]))
+        if sig > max_sig:  # in a search window: the fix must say something in its better direction
             return Fix.no_fix(
                 t, f"likelihood too spread: fix sigma {sig:.3g} m above {max_sig:.3g} m", self.name, score
             )
@@ -508,13 +509,18 @@ class LikelihoodMatcher:
 
     # ------------------------------------------------------------------ honesty
     def temperature(self, surf: Surface, n_fix: float, e_fix: float) -> float:
-        """The factor (>= 1) the scan's log-likelihood is divided by before its moments are taken (class
-        docstring): the sandwich factor of the correlated section covariance
-        (:func:`~.map_error.likelihood_temperature`) times the section's misfit per degree of freedom when that
-        exceeds 1 (the residuals at the fix are larger than sensor + map error say)."""
+        """The factor (>= 1) the scan's log-likelihood is divided by before its moments are taken (:meth:`honesty`)."""
+        return self.honesty(surf, n_fix, e_fix)[0]
+
+    def honesty(self, surf: Surface, n_fix: float, e_fix: float) -> tuple[float, FloatArray]:
+        """(temperature, top-up covariance m^2) of the fix at ``(n_fix, e_fix)`` (module docstring): the
+        sandwich of the correlated section covariance against the scan's diagonal one, as a scalar temperature
+        (the geometric mean of its two directions, :func:`~.map_error.temperature_and_topup`) and the covariance
+        that must still be added so that the fix covers the sandwich in the weaker direction; both scaled by the
+        section's misfit per degree of freedom when its chi-square exceeds the 99 % quantile."""
         sec = surf.section
         if sec is None or sec.dn.size == 0:
-            return 1.0
+            return 1.0, np.zeros((2, 2))
         frame = surf.frame
         pn, pe = sec.dn + n_fix, sec.de + e_fix
         k = pn.size
@@ -542,14 +548,14 @@ class LikelihoodMatcher:
                 g = jac[:, :, a].sum(axis=1) * sec.tau * float(sec.drift_mps[a])
                 sigma += np.outer(g, g)
         tr = section_transform(k, self.demean, self.difference)
-        kappa = likelihood_temperature(jac, sigma, surf.sigma2, tr)
+        kappa, topup = temperature_and_topup(jac, sigma, surf.sigma2, tr)
         resid = sec.z - m0
         phi = 1.0
         if np.all(np.isfinite(resid)):
             chi2, dof = whitened_misfit(resid, sigma, tr)
             if dof > 0 and chi2 > float(stats.chi2.ppf(MISFIT_PROBABILITY, dof)):
                 phi = chi2 / dof
-        return float(kappa * phi)
+        return float(kappa * phi), topup * phi
 
     def _overlap_factor(self, surf: Surface) -> float:
         """``K / (readings newer than the last issued fix)`` when this window shares readings with the window of

@@ -224,6 +224,31 @@ def likelihood_temperature(
     return float(max(1.0, np.max(lam)))
 
 
+def temperature_and_topup(
+    jac: ArrayLike, sigma: ArrayLike, s2_assumed: float, transform: ArrayLike | None = None
+) -> tuple[float, FloatArray]:
+    """A scalar temperature for a likelihood surface and the covariance to add to its moments so that they cover
+    the sandwich in every direction, without over-tempering the well-determined one: the geometric mean
+    ``sqrt(lam_min lam_max)`` (at least 1) of the eigenvalues of :func:`likelihood_temperature`'s problem, and
+    the positive semi-definite part of ``sandwich - temperature s2 A^-1`` (m^2). (1, 0) when the section does not
+    constrain both directions."""
+    j = np.asarray(jac, dtype=float)
+    j = j.reshape(j.shape[0], -1, 2)
+    t = np.eye(j.shape[0]) if transform is None else np.asarray(transform, dtype=float)
+    a = np.zeros((2, 2))
+    for c in range(j.shape[1]):
+        tj = t @ j[:, c, :]
+        a += tj.T @ tj
+    sw = sandwich_covariance(j, sigma, t)
+    if not np.all(np.isfinite(sw)):
+        return 1.0, np.zeros((2, 2))
+    lam = np.linalg.eigvals(a @ sw).real / float(s2_assumed)
+    temp = float(max(1.0, np.sqrt(max(float(np.min(lam)), 0.0) * float(np.max(lam)))))
+    d = sw - temp * float(s2_assumed) * np.linalg.inv(a)
+    w, v = np.linalg.eigh(0.5 * (d + d.T))
+    return temp, (v * np.maximum(w, 0.0)) @ v.T
+
+
 def whitened_misfit(residual: ArrayLike, sigma: ArrayLike, transform: ArrayLike | None = None) -> tuple[float, int]:
     """``(chi2, dof)`` of a section's residuals (K,) or (K, c) at the estimate under the covariance ``sigma``
     (K, K) per component, after the matcher's transform ``T``: ``r' T' (T Sigma T')^+ T r`` with the pseudo-inverse
