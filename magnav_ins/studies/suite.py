@@ -14,7 +14,8 @@ Groups (a *case* is one survey line flown at one speed with one IMU grade):
 Estimators (:data:`ESTIMATORS`, the same for every case, nothing tuned per case): ``ml+ukf``, ``pmht+ukf``,
 ``particle_ins+ukf``, ``ml+graph``; ``bayes_grid+ukf`` needs a vector map and both surveys are scalar total field.
 Matchers and fusers take their defaults. The set-up, stated once: 1 nT noise added to the real readings, taken
-every 0.5 s (Rio: 1 s, its survey sampled every ~100 m), the IMU at 10 Hz (straight lines: coning is negligible),
+every second (50-80 m apart: about two per correlation length of the Osborne map error; Rio's survey is sampled
+every ~100 m), the IMU at 10 Hz (straight lines: coning is negligible),
 the vertical channel held at the survey height (a barometer's job, as in every study), batch sections of
 :data:`WINDOW` readings matched every :data:`WINDOW` readings (non-overlapping sections, so the fixes are as
 independent as the map error lets them be), a recursive matcher asked for a fix as often, PMHT on its own default
@@ -56,10 +57,11 @@ GROUPS = ("osborne_tactical", "osborne_navigation", "rio")
 SPEEDS_MPS = (50.0, 65.0, 80.0)
 QUICK_SPEEDS_MPS = (65.0,)
 IMU_RATE_HZ = 10.0
-READING_INTERVAL_S = 0.5
+#: one reading a second: 50-80 m apart, about two per correlation length of the map error (~150 m at Osborne)
+READING_INTERVAL_S = 1.0
 READING_NOISE_NT = 1.0
-#: readings per batch-matcher section and between fix attempts (30 s at 0.5 s)
-WINDOW = 60
+#: readings per batch-matcher section and between fix attempts (30 s: 1.5-2.4 km)
+WINDOW = 30
 
 ESTIMATORS: tuple[dict[str, Any], ...] = (
     {"name": "ml+ukf", "matcher": {"kind": "ml"}, "fusion": {"kind": "ukf"}, "window": WINDOW, "match_every": WINDOW},
