@@ -39,7 +39,7 @@ FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
         "altitude_hold_sigma_m",
     ),
     "free_inertial": ("gate_probability", *_CORE, "integrity_risk", *EXTRA_STATE_OPTIONS),
-    "cv_kf": ("accel_sigma_mps2", "turn_command", "gate_probability", "altitude_hold"),
+    "cv_kf": ("accel_sigma_mps2", "turn_command", "gate_probability", "inflate_nis", "altitude_hold"),
     "solution": ("altitude_hold",),
 }
 
