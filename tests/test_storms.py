@@ -144,6 +144,24 @@ def test_cv_kf_propagation_and_update_match_the_kalman_equations():
     assert not late.accepted and "no history" in late.reason
 
 
+def test_cv_kf_residual_monitoring_scales_the_covariance_by_nis_over_2():
+    """A fix 2 m east with P = 0.1^2 I, R = 0.1^2 I: NIS = 4 / 0.02 = 200 > 9.21, so P is scaled by 100 first
+    (position sigma 1 m) and the gain is 1 / (1 + 0.01) instead of 1/2; the NIS after scaling is 4 / 1.01."""
+    f = make_fuser("cv_kf", _estimate(sig=0.1, sig_v=0.1), NOISE, inflate_nis=9.21)
+    R = np.eye(2) * 0.01
+    lat, lon = latlon(_dummy_frame(), np.array([0.0]), np.array([2.0]))
+    inn = f.correct(Fix(0.0, float(lat[0]), float(lon[0]), R, True, "", 0.0, "test"))
+    assert inn.accepted and inn.nis == pytest.approx(4.0 / 1.01, rel=1e-4)
+    assert f.x[1] == pytest.approx(2.0 / 1.01, rel=1e-4)  # K = 1 / 1.01 on the east position
+    assert f.P[1, 1] == pytest.approx(1.0 * 0.01 / 1.01, rel=1e-4)
+    small = make_fuser("cv_kf", _estimate(sig=0.1, sig_v=0.1), NOISE, inflate_nis=9.21)
+    lat, lon = latlon(_dummy_frame(), np.array([0.0]), np.array([0.3]))  # NIS 4.5: below, the plain update
+    small.correct(Fix(0.0, float(lat[0]), float(lon[0]), R, True, "", 0.0, "test"))
+    assert small.x[1] == pytest.approx(0.15, rel=1e-4)
+    with pytest.raises(ConfigError):
+        make_fuser("cv_kf", _estimate(), NOISE, inflate_nis=1.0)
+
+
 def _dummy_frame() -> GridMap:
     return GridMap(np.arange(3.0), np.arange(3.0), np.zeros((3, 3)), kind="total_field_anomaly_nt",
                    frame="local", altitude_m=0.0, origin=ORIGIN)  # fmt: skip
