@@ -30,7 +30,7 @@ Feature rows (sec. 4.6.3, ``aiding.matchers.features``): a second map of the sam
 background (20 mG per axis, 100 m correlation) plus sparse features (a bump every 60 m on average, 1.5-3 m wide,
 30 mG per axis: Shockley's pipes and bridges); each trial reads 10-20 m before to 10-20 m after a random feature,
 the readings rotated to the navigation frame with a 1 deg heading error; the observed feature is aligned on its
-defining peak with every map feature in both directions and fitted by RSS. Methods: the best fit always (the ML pick)
+defining peak with every map feature read within 45 deg of the vehicle's heading and fitted by RSS. Methods: the best fit always (the ML pick)
 and the fit thresholded at an RMS residual of ``FEATURE_RSS_THRESHOLD`` reading sigmas.
 
 Output per row and method: availability and the fractions of fixes in Shockley's bins (< 3 m, 3-10, 10-20, > 20 m),
@@ -213,11 +213,11 @@ def run_feature_case(track: Any, spec: dict[str, Any], runs: int, trials: int, s
             a = max(0, f.start - int(rng.integers(10, 21)))
             b = min(len(prof), f.stop + int(rng.integers(10, 21)))
             z = prof[a:b] + rng.normal(0.0, 1.0, (b - a, 3)) * spec["noise"] + bias  # heading error below
-            psi = float(track.heading[pts[b - 1]])
+            psi = float(track.heading[pts[b - 1]]) + (np.pi if f.direction else 0.0)  # travel heading
             from magnav_ins.maps.track import body_to_ned, ned_to_body
 
             z = body_to_ned(ned_to_body(z, psi), psi + np.radians(rng.normal(0.0, 1.0)))
-            k, _, rms, why = best.match_profile(z, track, sigma)
+            k, _, rms, why = best.match_profile(z, track, sigma, psi + np.radians(rng.normal(0.0, 1.0)))
             if k < 0:
                 errs.append(np.nan)
                 ok.append(False)

@@ -262,3 +262,28 @@ def test_storms_turn_study_two_runs(tmp_path):
     assert e["fusion"] == "cv_kf" and e["availability"] > 0.9
     assert e["rms_after_first_fix_m"] < 0.3
     assert doc["free_inertial"]["rms_horizontal_m"] > 10.0
+
+
+def test_cover_rivals_of_the_likelihood_widens_r_by_the_hidden_peak():
+    """Two equal likelihood peaks 0.8 m apart along north (a scalar field with two identical wells), the filter's
+    prior narrow (0.1 m) on the first: the posterior shows one peak (the prior suppresses the other by e^-32), so
+    the posterior-rival guard sees nothing; the likelihood rivals add w d d^T with w = 1/2, d = 0.8 m north: R_NN
+    grows by 0.32 m^2, R_EE not at all."""
+    ax = np.arange(-2.0, 2.0001, 0.05)
+    n, e = np.meshgrid(ax, ax, indexing="ij")
+    well = lambda n0: np.exp(-((n - n0) ** 2 + e**2) / (2 * 0.15**2))  # noqa: E731
+    fmap = GridMap(ax, ax, 100.0 * (1.0 - well(0.0) - well(0.8)), kind="total_field_anomaly_nt", frame="local",
+                   altitude_m=0.0, origin=ORIGIN)  # fmt: skip
+    prior = nav_estimate(fmap, 0.0, np.array([0.0, 0.0]), np.zeros(2), np.eye(2) * 0.01)
+    rd = FieldReadings(np.array([0.0]), np.array([0.0]), 10.0, "total_field_anomaly_nt")
+    fixes = {}
+    for cover in (False, True):
+        m = BayesGridMatcher(guards=False, map_sigma=0.0, cover_rivals=cover, rivals_of="likelihood", quantisation=0.0)
+        fixes[cover] = m.to_fix(m.update(m.initiate(prior), rd, fmap))
+        assert fixes[cover].available, fixes[cover].reason
+        assert np.hypot(*local(fmap, fixes[cover].lat, fixes[cover].lon)) < 0.06  # the first well
+    dR = fixes[True].cov_ne - fixes[False].cov_ne
+    assert dR[0, 0] == pytest.approx(0.32, rel=0.05)
+    assert abs(dR[1, 1]) < 1e-9 and abs(dR[0, 1]) < 0.02
+    with pytest.raises(ConfigError, match="rivals_of"):
+        BayesGridMatcher(rivals_of="prior")

@@ -40,8 +40,12 @@ fix's own ``peak_mass_sigma`` ellipse (R does not describe the posterior: it is 
 fix, ambiguous"; a reading residual at the peak above ``max_residual_sigma`` s per component (chi-square) -> "no
 fix, large residual". Storms' own suggestions (sec. 4.3.3), each an option: ``max_jump_m`` ignores a peak more
 than that many metres from the estimate ("residual monitoring ... so many meters away from the estimate"), and
-``cover_rivals`` keeps the fix but widens R to cover the other peaks in the prior region (R plus the peaks' second
-moment about the fix, each weighted by its posterior density) instead of refusing it.
+``cover_rivals`` keeps the fix but widens R to cover the other peaks (R plus the peaks' second moment about the fix,
+each weighted by its share of the peaks' density) instead of refusing it: with ``rivals_of = "posterior"`` the
+posterior's other peaks in the prior region (those the ambiguity guard refuses), with ``"likelihood"`` the
+likelihood's own peaks anywhere in the window holding at least ``peak_ratio`` of its maximum. The second is the one
+that acts when the filter's prior is wrong and too sure of itself (Storms' filter through the turn without the turn
+command): the prior then suppresses the true peak in the posterior, and only the likelihood still shows it.
 
 Off the map (``off_map``): ``"impossible"`` (default) gives nodes without map values zero likelihood, so the
 posterior is forced onto the mapped nodes even when the vehicle has left the map (the peak then sits on the map's
@@ -143,6 +147,7 @@ class BayesGridMatcher:
     max_jump_m: float | None = None
     off_map: str = "impossible"
     max_off_map_mass: float = 0.5
+    rivals_of: str = "posterior"
     min_variability: float = 0.5
     max_nodes: int = 1_000_000
     quantisation: float = 1.0
@@ -152,6 +157,8 @@ class BayesGridMatcher:
     def __post_init__(self) -> None:
         if self.spread_of not in ("likelihood", "posterior"):
             raise ConfigError(f"bayes_grid 'spread_of': expected 'likelihood' or 'posterior', got {self.spread_of!r}")
+        if self.rivals_of not in ("posterior", "likelihood"):
+            raise ConfigError(f"bayes_grid 'rivals_of': expected 'posterior' or 'likelihood', got {self.rivals_of!r}")
         if self.off_map not in ("impossible", "unknown"):
             raise ConfigError(f"bayes_grid 'off_map': expected 'impossible' or 'unknown', got {self.off_map!r}")
         if self.covariance not in COVARIANCE_RULES:
@@ -317,8 +324,15 @@ class BayesGridMatcher:
             sig_e = _tail_sigma(src[kp[0], :], e_ax, e_fix, self.tail)
             R = np.diag([sig_n**2, sig_e**2])
         R = R + np.eye(2) * step**2 / 12.0
+        if self.cover_rivals and self.rivals_of == "likelihood":  # the likelihood's own peaks in the window
+            lk = np.exp(loglik - np.max(loglik))
+            lmax = (lk == ndimage.maximum_filter(lk, size=3, mode="constant", cval=0.0)) & (lk >= self.peak_ratio)
+            rivals = lmax & far
+            dens, dens_fix = lk[rivals], float(lk[kp])
+        else:
+            dens, dens_fix = post[rivals], float(post[kp])
         if self.cover_rivals and np.any(rivals):  # R covers the other peaks: the modes' second moment about the fix
-            w = post[rivals] / (post[kp] + post[rivals].sum())
+            w = dens / (dens_fix + dens.sum())
             d = np.column_stack([gn[rivals] - n_fix, ge[rivals] - e_fix])
             R = R + (d * w[:, None]).T @ d
         if not np.all(np.isfinite(R)):

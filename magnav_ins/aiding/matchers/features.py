@@ -10,7 +10,9 @@ bridge: 003 Fig. 4.4). Features are found the same way in the readings and in a 
   long; its *defining peak* is its sample of largest deviation (a high or a low).
 
 Matching (sec. 4.6.3): the observed feature of the section (the strongest one wholly inside it) is compared with
-every map feature of the road map, in both directions of travel along each road: the two defining peaks are
+every map feature of the road map read in a direction of travel within ``heading_tolerance_deg`` (45 deg) of the
+section's own (from its INS track: a feature of a navigation-frame map read the other way is its mirror image, and a
+symmetric bump would match both ways), in both directions along each road: the two defining peaks are
 aligned, and the comparison runs over the samples both features hold about the aligned peak ("the shorter of the two
 becomes the length for comparison"). The fit is the root-sum-squared residual
 
@@ -105,7 +107,8 @@ class FeatureMatcher:
     Parameters: ``threshold_sigma`` feature detection (deviation from the background in reading sigmas);
     ``background_m`` running-median window (m); ``min_length_m`` shortest feature (m); ``rss_threshold`` largest
     accepted RMS residual per sample and component, in reading sigmas (None: always the best feature);
-    ``compose`` "raw" | "demean" | "difference"; ``min_fix_sigma_m`` added to the fix 1-sigma."""
+    ``compose`` "raw" | "demean" | "difference"; ``min_fix_sigma_m`` added to the fix 1-sigma;
+    ``heading_tolerance_deg`` candidates by direction of travel."""
 
     threshold_sigma: float = 4.0
     background_m: float = 30.0
@@ -113,6 +116,7 @@ class FeatureMatcher:
     rss_threshold: float | None = None
     compose: str = "raw"
     min_fix_sigma_m: float = 0.0
+    heading_tolerance_deg: float = 45.0
     name: str = "feature_rss"
     _cache: dict[Any, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
@@ -150,10 +154,13 @@ class FeatureMatcher:
         self._cache[key] = (track, (feats, profiles, points))
         return feats, profiles, points
 
-    def match_profile(self, z: FloatArray, track: Any, sigma: float) -> tuple[int, Feature | None, float, str]:
+    def match_profile(
+        self, z: FloatArray, track: Any, sigma: float, heading: float | None = None
+    ) -> tuple[int, Feature | None, float, str]:
         """The best map feature for the readings ``z`` (n, c) sampled at the map's step, in travel order: returns
         (map point index of the last reading, the map feature, RMS residual per sample in sigmas, "" or the reason
-        of a "no fix")."""
+        of a "no fix"). With the travel ``heading`` (rad from north) only map features read in a direction of
+        travel within ``heading_tolerance_deg`` of it are candidates."""
         step = _step(track)
         z = np.asarray(z, float).reshape(len(z), -1)
         dev = deviation(z, step, self.background_m, sigma)
@@ -169,12 +176,18 @@ class FeatureMatcher:
         if not feats:
             return -1, None, np.nan, "no feature: the map holds no feature"
         best, best_rms = None, np.inf
+        cos_tol = np.cos(np.radians(self.heading_tolerance_deg))
         for f in feats:
+            if heading is not None:
+                h_map = float(track.heading[points[f.road][f.peak]]) + (np.pi if f.direction else 0.0)
+                if np.cos(h_map - heading) < cos_tol:
+                    continue
             rss, n = rss_fit(z, o, profiles[f.road], f, self.compose)
             rms = rss / np.sqrt(max(n, 1)) / float(sigma)
             if rms < best_rms:
                 best, best_rms = f, rms
-        assert best is not None
+        if best is None:
+            return -1, None, np.nan, "no feature: no map feature read in this direction of travel"
         if self.rss_threshold is not None and best_rms > self.rss_threshold:
             return (
                 -1,
@@ -203,7 +216,9 @@ class FeatureMatcher:
         frame = make_frame(fmap, float(window.lat[-1]), float(window.lon[-1]))
         dn, de = frame.to_ne(np.asarray(window.lat), np.asarray(window.lon))
         _, _, zs = distance_sample(dn, de, z, _step(fmap))
-        k, _, rms, why = self.match_profile(zs, fmap, float(rd.sigma))
+        moved = np.hypot(dn[-1] - dn[0], de[-1] - de[0])
+        heading = float(np.arctan2(de[-1] - de[0], dn[-1] - dn[0])) if moved > _step(fmap) else None
+        k, _, rms, why = self.match_profile(zs, fmap, float(rd.sigma), heading)
         if why:
             return Fix.no_fix(t, why, self.name, rms)
         sig2 = _step(fmap) ** 2 + self.min_fix_sigma_m**2
