@@ -29,6 +29,10 @@ fix is tried:
 * ``bayes_grid_body``: the Bayes grid on a map and readings in the levelled body frame: the heading-dependent
   field; a revisit walked in another direction reads differently (the mall's arms are walked out and back).
 
+Both matchers treat map nodes without values as "the field here is unknown" (``off_map = "unknown"``: the
+reading's likelihood under the map's own field statistics), so a walk that leaves the mapped path gets "no fix: off
+the map" instead of a fix on the map's edge; ``--off-map impossible`` restores the old behaviour.
+
 Figures per walk and method, over ``--seeds`` odometry draws: availability (fixes issued / attempts), fix error
 median / 95th percentile (m), fix NEES (2 = consistent), the EKF's horizontal RMS over the test part, and the
 odometry-only RMS (no fixes) beside it.
