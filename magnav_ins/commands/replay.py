@@ -16,6 +16,7 @@ import datetime as _dt
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 from ..core.atomic import check_output_file, write_text_atomic
@@ -106,6 +107,9 @@ def format_summary(s: dict, rec, map_spec: str, date: str, date_source: str) -> 
         f"init from {s['init']}, IGRF date {date} ({date_source})",
         f"  fixes: {s['fix_attempts']} attempts, {s['fixes_issued']} issued, {s['fixes_accepted']} accepted",
     ]
+    if "replay_cpu_s" in s:
+        rate = s["imu_samples"] / max(s["replay_cpu_s"], 1e-9)
+        lines.insert(2, f"  replayed in {s['replay_cpu_s']:.1f} s of CPU ({rate:,.0f} IMU samples/s)")
     if s["no_fix_reasons"]:
         lines.append("  no fix: " + "; ".join(f"{r} x{n}" for r, n in s["no_fix_reasons"].items()))
     if s["rejected_reasons"]:
@@ -170,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
     # a bar on a terminal only (tqdm's disable=None), on stderr, gone when done; --quiet: none
     bar = tqdm(total=total, desc="replay", unit="sample", unit_scale=True, mininterval=0.5, leave=False,
                disable=True if args.quiet else None, file=sys.stderr)  # fmt: skip
+    cpu0 = time.process_time()
     with bar:
         res = replay(
             rec,
@@ -191,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
             progress=bar.update,
         )
     summary = res.summary()
+    summary["replay_cpu_s"] = time.process_time() - cpu0
     if args.out is not None:
         write_trajectory(args.out, res)
     if args.summary_json is not None:

@@ -132,13 +132,14 @@ def _check_series(path: Path, what: str, t: FloatArray, values: dict[str, FloatA
         bad = ~np.isfinite(np.asarray(v, float).reshape(len(t), -1)).all(axis=1)
         if bad.any():
             k = int(np.argmax(bad))
-            raise InputError(f"{path}: {what} row {k + 1} (t={t[k]!r} s): non-finite {name} {np.asarray(v)[k]!r}")
+            bad_v = np.asarray(v, float)[k]
+            raise InputError(f"{path}: {what} row {k + 1} (t={float(t[k])} s): non-finite {name} {bad_v.tolist()}")
     d = np.diff(t)
     bad = d <= 0 if strict else d < 0
     if bad.any():
         k = int(np.argmax(bad)) + 1
         raise InputError(
-            f"{path}: {what} row {k + 1}: time goes backwards or repeats: t={t[k]!r} s after t={t[k - 1]!r} s"
+            f"{path}: {what} row {k + 1}: time goes backwards or repeats: t={float(t[k])} s after t={float(t[k - 1])} s"
         )
 
 
@@ -335,7 +336,7 @@ def _read_csv(p: Path) -> LogRecording:
         bad = ~np.isfinite(a[:, j])
         if bad.any():
             k = int(np.argmax(bad))
-            raise InputError(f"{p}: row {k + 1} column {c!r}: non-finite value {a[k, j]!r}")
+            raise InputError(f"{p}: row {k + 1} column {c!r}: non-finite value {float(a[k, j])}")
     _check_series(p, "CSV", a[:, 0], {}, strict=True)
     imu = ImuBatch(a[:, 0], a[:, 1:4], a[:, 4:7])
     mag_t = a[:, 0] if has_mag else np.zeros(0)
@@ -481,6 +482,11 @@ def initial_state(
         if rec.gnss is not None and abs(rec.gnss.t[_nearest(rec.gnss.t, t0)] - t0) < 1.0:
             v_n = rec.gnss.v_n[_nearest(rec.gnss.t, t0)]
         return NavState(t0, lat, lon, h, v_n, q_nb_from_euler(roll, pitch, yaw)), k0, source
+    if rec.fmt == "csv":
+        raise ConfigError(
+            f"{rec.path}: a CSV recording holds no GNSS position or attitude to start from: add --init "
+            "LAT_DEG,LON_DEG,ALT_M,YAW_DEG"
+        )
     missing = []
     if rec.gnss is None:
         missing.append(f"no GNSS position ({'vehicle_gps_position' if rec.fmt == 'ulog' else 'GLOBAL_POSITION_INT'})")

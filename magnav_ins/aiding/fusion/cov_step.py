@@ -5,7 +5,7 @@ NED metres; noise ``[w_a, w_g, w_ba, w_bg]``, ``Qc = diag(VRW^2, ARW^2, 2 sigma_
 with the step's attitude-dependent blocks averaged as in :func:`.common.step_matrices` (``-mean(C_nb)`` for the bias
 columns, ``-[mean(f_n) x]`` for the tilt column), discretised by Van Loan (``B = exp([[-F, G Qc G^T], [0, F^T]] dt)``,
 ``Phi = B22^T``, ``Qd = Phi B12``) with the product-only matrix exponential of :func:`.common._expm` (scaling and
-squaring of a Taylor polynomial, Moler & Van Loan 2003 method 3).
+squaring of a Taylor polynomial, Moler & Van Loan 2003 method 3), on the blocks of the block-triangular ``A``.
 
 Why compiled: a fuser takes a covariance step at every reading and output (10-15 per second in the bridge and the
 replay); in Python the ~60 small numpy operations of building ``F`` and the 30x30 exponential cost ~0.3 ms per step,
@@ -137,14 +137,41 @@ def _step_15(
     for i in range(12):
         Qc[i, i] = qc[i]
 
-    n = 15
-    A = np.zeros((2 * n, 2 * n))
-    A[:n, :n] = -F
-    A[:n, n:] = G @ Qc @ G.T
-    A[n:, n:] = F.T
-    B = _expm(A * dt, 10)
-    Phi = np.ascontiguousarray(B[n:, n:].T)
-    Qd = Phi @ np.ascontiguousarray(B[:n, n:])
+    return _van_loan(F, G @ Qc @ G.T, dt, 10)
+
+
+@njit(cache=True)
+def _van_loan(F: FloatArray, GQG: FloatArray, dt: float, order: int) -> tuple[FloatArray, FloatArray]:
+    """``(Phi, Qd)`` from ``B = exp(A dt)``, ``A = [[-F, G Qc G^T], [0, F^T]]``, by :func:`_expm`'s scaling and
+    squaring of a Taylor polynomial carried out on the 15x15 blocks: ``A`` and all its powers are block upper
+    triangular, so each product needs four block products instead of the eight of the 30x30 one (the same
+    numbers to rounding)."""
+    M11 = -F * dt
+    M12 = GQG * dt
+    M22 = np.ascontiguousarray(F.T) * dt
+    norm = 0.0  # 1-norm of A dt: the largest column sum, columns of [M11; 0] and [M12; M22]
+    n = F.shape[0]
+    for j in range(n):
+        c1 = 0.0
+        c2 = 0.0
+        for i in range(n):
+            c1 += abs(M11[i, j])
+            c2 += abs(M12[i, j]) + abs(M22[i, j])
+        norm = max(norm, c1, c2)
+    s = 0
+    if norm > 0.25:
+        s = max(0, int(math.ceil(math.log2(norm / 0.25))))
+    sc = 2.0**s
+    M11, M12, M22 = M11 / sc, M12 / sc, M22 / sc
+    E11, E12, E22 = np.eye(n), np.zeros((n, n)), np.eye(n)
+    T11, T12, T22 = np.eye(n), np.zeros((n, n)), np.eye(n)
+    for k in range(1, order + 1):
+        T11, T12, T22 = (T11 @ M11) / k, (T11 @ M12 + T12 @ M22) / k, (T22 @ M22) / k
+        E11, E12, E22 = E11 + T11, E12 + T12, E22 + T22
+    for _ in range(s):
+        E11, E12, E22 = E11 @ E11, E11 @ E12 + E12 @ E22, E22 @ E22
+    Phi = np.ascontiguousarray(E22.T)
+    Qd = Phi @ E12
     return Phi, 0.5 * (Qd + Qd.T)
 
 
