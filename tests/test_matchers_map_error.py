@@ -222,8 +222,10 @@ def test_cramer_rao_floor_raises_only_the_over_confident_direction():
 
 def test_particle_ins_gives_no_fix_on_a_plane_with_an_unknown_level():
     """A map that is a plane (constant gradient): with the level between readings and map unknown, the readings
-    say nothing about the position (a shift is a level change). The cloud's sampling noise must not be issued as a
-    fix: no fix, whatever the seed."""
+    say nothing about the position (a shift is a level change). Its error layer is striped like a line survey's
+    (5 nT on north-south lines every 500 m, 40 nT between): the layer's shape is no evidence either (a likelihood
+    with a variance per particle rewarded the particles on the lines and issued confident along-track fixes).
+    No fix, whatever the seed."""
     from matcher_scenarios import KIND_TF, latlon, nav_estimate
 
     from magnav_ins.core.types import FieldReadings
@@ -232,12 +234,13 @@ def test_particle_ins_gives_no_fix_on_a_plane_with_an_unknown_level():
     ax = np.arange(0.0, 3001.0, 50.0)
     plane = 0.2 * ax[:, None] + 0.1 * ax[None, :]  # nT: 0.2 nT/m north, 0.1 nT/m east
     fmap = GridMap(ax, ax, plane, kind=KIND_TF, frame="local", altitude_m=0.0, origin=ORIGIN, name="plane")
-    fmap = fmap.with_error_layer(5.0, 200.0, "test")
+    stripes = np.where(np.abs((ax + 250.0) % 500.0 - 250.0) < 60.0, 5.0, 40.0)  # small within 60 m of a line
+    fmap = fmap.with_error_layer(np.broadcast_to(stripes[None, :], plane.shape), 100.0, "test")
     issued = []
     for seed in range(5):
         m = build_matcher({"kind": "particle_ins"})
         rng = np.random.default_rng(seed)
-        v, p, P = np.array([0.0, 30.0]), np.array([1500.0, 600.0]), np.eye(2) * 40.0**2
+        v, p, P = np.array([0.0, 30.0]), np.array([1500.0, 600.0]), np.eye(2) * 150.0**2
         st = m.initiate(nav_estimate(fmap, 0.0, p, v, P), rng)
         for k in range(1, 41):
             p = p + v

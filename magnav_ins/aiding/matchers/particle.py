@@ -596,9 +596,16 @@ class ParticleFilter:
             ), None
         err = self._error_model(fmap)
         lat, lon = state.frame.to_latlon(state.pos[:, 0], state.pos[:, 1])
+        w = np.exp(state.logw)
         sm2 = err.sigma_at(lat, lon) ** 2  # (M,)
-        fisher = _fisher_step(state, fmap, lat, lon, np.exp(state.logw), sm2, s2v, err.correlation_m)
-        sm2 = np.where(np.isfinite(sm2), sm2, 0.0)[:, None] * np.ones((1, ncomp))
+        sm2 = np.where(np.isfinite(sm2), sm2, 0.0)
+        # one map-error variance for the whole cloud (its weighted mean where the cloud is): with a variance per
+        # particle the likelihood's normalisation, prod_k S_k(x)^-1/2, rewards positions where the error layer is
+        # small (near the survey's lines) whatever the readings say - on Rio, where flight lines are 1 km apart,
+        # that alone gave confident along-track fixes hundreds of metres off on a featureless stretch
+        sm2 = np.full(len(sm2), float(w @ sm2))
+        fisher = _fisher_step(state, fmap, lat, lon, w, sm2, s2v, err.correlation_m)
+        sm2 = sm2[:, None] * np.ones((1, ncomp))
         st = self._level_error_predict(state, sm2, err.correlation_m, ncomp)
         resid = np.where(ok[:, None], z[None, :] - m, 0.0)  # (M, c)
         loglik, st = self._level_error_update(st, resid, s2v)
