@@ -25,8 +25,11 @@ Road penalisation (003 sec. 5.2): with a ``road`` map (anything with ``nearest(l
 Measurement update (``measurement="field"``). A reading is ``z = m(x) + c + b(x) + v``: the map at the particle,
 an unknown level offset ``c`` between readings and map (levelling, diurnal variation, the platform's own field:
 the tie lines of the Osborne survey sit 17-30 nT off its flight lines), the map error ``b`` and the sensor noise
-``v`` (``readings.sigma``). The map error has the 1-sigma of the map's error layer at the particle (or
-``map_sigma``, or the stated default: :func:`~.map_error.resolve_map_error`) and is correlated along the track:
+``v`` (``readings.sigma``). The map error has the 1-sigma of the map's error layer where the cloud is (its weighted
+mean over the particles, one value per reading for the whole cloud: a variance per particle would make the
+likelihood's normalisation reward the particles where the layer is small, near the survey's lines, whatever the
+readings say), or ``map_sigma``, or the stated default (:func:`~.map_error.resolve_map_error`), and is correlated
+along the track:
 each particle carries a two-state Kalman filter for ``(c, b)`` (Rao-Blackwellised: the weights use the marginal
 likelihood ``N(z - m(x); c_hat + b_hat, S)``), with ``b`` a first-order Gauss-Markov process in the distance the
 particle moved (:func:`~.map_error.markov_coefficient`: readings inside one correlation length share their map
@@ -61,11 +64,15 @@ variability, Wang eq. 14, of a 9 x 9 stencil of half-width ``max(2 sigma_cloud, 
 mean below ``min_variability`` sensor sigmas) or had a NaN reading; when the cloud is not unimodal (more than
 ``ambiguity_mass`` of its weight more than 3 sigma, Mahalanobis, from its mean: a Gaussian has 1.1 %); and in the
 increment mode when the readings did not add information in both directions (``P^-1 - P0^-1`` not positive
-definite) or the fix 1-sigma would exceed ``max_fix_sigma_m`` (default: the prior's own 1-sigma).
+definite) or the fix 1-sigma would exceed ``max_fix_sigma_m`` (default: twice the prior's own 1-sigma).
 
 The fix covariance contains: sensor noise, the map error (variance and along-track correlation), the unknown level,
 the INS velocity error and random walk over the time since the cloud was drawn (all through the particles'
-weights), and the cloud's shape (multi-modality beyond the ambiguity limit gives no fix).
+weights), the cloud's shape (multi-modality beyond the ambiguity limit gives no fix), the readings' forecast misfit
+(the covariance scaled by the NIS per reading when it exceeds its 99 % quantile), and a floor: the increment is never
+tighter than the Cramer-Rao bound of its readings (:func:`_fisher_bound`: the map gradients along the cloud's track,
+the level projected out, the correlated map error counted by the effective number of readings). The cloud's
+weighted moments alone were up to 5x tighter than that bound on a featureless stretch of the Rio tie lines.
 """
 
 from __future__ import annotations
