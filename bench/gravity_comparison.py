@@ -12,8 +12,11 @@ fixes (2 when the fix covariances are right), the filter's NEES, and the limit c
 bound of the flight (``metrics.json`` ``crlb_rms_horizontal_m``, ``studies.crlb``) with the ratio mean / CRLB;
 the "no fix" reasons and the wall time of each study.
 
+``--figures DIR`` also draws ``DIR/gravity_error_<stem>.png``: the RMS over runs of every estimator's horizontal
+error against time, with the flight's posterior CRLB (``studies.crlb.flight_crlb``) as the limit curve.
+
 Run: ``python bench/gravity_comparison.py [--runs N] [--jobs J] [--all | --only STEM ...] [--out DIR] [--from DIR]
-[--json]``. Defaults: each scenario's own ``runs`` (20), 2 jobs, ``runs/gravity``.
+[--figures DIR] [--json]``. Defaults: each scenario's own ``runs`` (20), 2 jobs, ``runs/gravity``.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from studies_matchers import _m, _pct, _run_or_read, fix_nees  # noqa: E402
+from studies_matchers import EXAMPLES, _m, _pct, _run_or_read, fix_nees  # noqa: E402
 
 COMPARISON = ("gravity_melbourne_sydney", "gravity_qld_west", "gravity_gulf_of_alaska")
 VARIANTS = (
@@ -89,6 +92,44 @@ def table(stem: str, rs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def error_figure(stem: str, ds: Any, out_dir: Path) -> Path:
+    """``out_dir/gravity_error_<stem>.png``: RMS over runs of the horizontal error (m) vs time per estimator and
+    the flight's posterior CRLB (m, ``sqrt(P_NN + P_EE)``) along the same truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from magnav_ins.studies.crlb import flight_crlb
+    from magnav_ins.studies.model import PipelineModel
+    from magnav_ins.studies.scenario import load_scenario
+
+    sc = load_scenario(EXAMPLES / f"{stem}.toml")
+    sh = PipelineModel(sc).shared()
+    tc, sc_h = flight_crlb(sc, sh["truth"], sh["imu"], sh["map"])
+    t = np.asarray(ds["time"], float) / 3600.0
+    fig, ax = plt.subplots(figsize=(6.4, 3.3))
+    for name in [str(n) for n in ds["estimator"].values]:
+        e = ds.sel(estimator=name)
+        h2 = np.asarray(e["err_north_m"], float) ** 2 + np.asarray(e["err_east_m"], float) ** 2
+        free = name == "free_inertial"
+        ax.plot(t, np.sqrt(np.nanmean(h2, axis=0)), lw=1.0 if free else 1.3, ls=":" if free else "-",
+                color="0.4" if free else None, label=name.replace("+ukf", ""))  # fmt: skip
+    ax.plot(tc / 3600.0, sc_h, color="k", lw=1.6, ls="--", label="CRLB")
+    ax.set_yscale("log")
+    ax.set_xlabel("time (h)")
+    ax.set_ylabel("horizontal error, RMS (m)")
+    ax.set_title(f"{stem}: {ds.sizes['run']} runs", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=4, loc="upper left")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"gravity_error_{stem}.png"
+    fig.savefig(path, dpi=80, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default: each scenario's own)")
@@ -97,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="*", default=None, help="scenario file stems")
     ap.add_argument("--out", type=Path, default=Path("runs/gravity"))
     ap.add_argument("--from", dest="from_dir", type=Path, default=None, help="read DIR/<stem>/metrics.json instead")
+    ap.add_argument("--figures", type=Path, default=None, help="draw DIR/gravity_error_<stem>.png")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     stems = args.only or (list(COMPARISON) + (list(VARIANTS) if args.all else []))
@@ -108,6 +150,8 @@ def main(argv: list[str] | None = None) -> int:
         rs = rows(stem, doc, ds)
         out["scenarios"][stem] = rs
         md.append(table(stem, rs))
+        if args.figures is not None and ds is not None:
+            error_figure(stem, ds, args.figures)
         if not args.json:
             print(md[-1] + "\n", flush=True)
     out["wall_s"] = time.perf_counter() - t0

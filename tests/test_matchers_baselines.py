@@ -149,3 +149,92 @@ def test_contour_points_and_rigid_fit_analytic():
     R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
     theta, tr = rigid_fit(a, a @ R.T + [5.0, -7.0], rotation=True)
     assert abs(theta - th) < 1e-12 and np.allclose(tr, [5.0, -7.0])
+
+
+# ---------------------------------------------------------------------------------------------- the issuing rule
+def test_issuing_rule_on_built_covariances():
+    """Issue 16's rule, on covariances built by hand: a fix is refused as "flat map" only when fusing it would not
+    shrink the prior. Prior P = 100^2 I m^2, gate 4 prior sigmas (B = h^2 / 3, what a flat map returns)."""
+    from magnav_ins.aiding.matchers._batch import adds_information, information_ratio, information_refusal
+
+    P, gate = np.eye(2) * 100.0**2, (400.0, 400.0)
+
+    def shrink(C):  # largest relative variance reduction of the Kalman fusion (P^-1 + C^-1)^-1 against P
+        post = np.linalg.inv(np.linalg.inv(P) + np.linalg.inv(C))
+        return 1.0 - np.linalg.eigvalsh(np.linalg.solve(P, post))[0]
+
+    # twice the prior in every direction: the old rule (tighter than the prior somewhere) refused it; it adds
+    # 1/2 - 3/16 = 0.31 of the prior's information beyond the gate's and cuts the variance by a third
+    C = 2.0 * P
+    assert information_ratio(C, P, gate) == pytest.approx(0.5 - 3.0 / 16.0)
+    assert adds_information(C, P, gate) and shrink(C) > 0.3
+    # a ridge (20 m across, 100 km along): issued whatever the prior is, from 30 m to 100 km
+    R = np.diag([20.0**2, 1e5**2])
+    for ps in (30.0, 1e3, 1e4, 1e5):
+        assert adds_information(R, np.eye(2) * ps**2, (4 * ps, 4 * ps)), ps
+    # what a flat map returns (the gate's own uniform variance) and a huge covariance add nothing: refused
+    B = np.diag(np.asarray(gate) ** 2 / 3.0)
+    assert information_ratio(B, P, gate) == 0.0 and not adds_information(B, P, gate)
+    assert not adds_information(P * 1e4, P)
+    no = information_refusal(5.0, B, P, "x", 1.0, gate)
+    assert not no.available and no.reason.startswith("flat map") and "information ratio 0" in no.reason
+    # without a gate term the rule is exactly "the fusion cuts the prior's variance by 1 - 1 / 1.05 (4.8 %) or more
+    # in some direction": random covariances from 1/100 to 30 times the prior
+    rng = np.random.default_rng(2)
+    for _ in range(500):
+        A = rng.normal(size=(2, 2)) * rng.uniform(10, 400)
+        C = A @ A.T + np.eye(2)
+        if abs(shrink(C) - (1 - 1 / 1.05)) > 1e-9:
+            assert adds_information(C, P) == (shrink(C) > 1 - 1 / 1.05), C
+
+
+def _wide_fix_trial(m, fmap, rng):
+    """A tight prior (10 m) and noisy readings (6 mGal): the batch alone locates the aircraft to ~15-25 m, no
+    better than the prior in any direction, yet fusing it still shrinks the prior. Returns the fix, the truth, the
+    prior and the readings' Fisher information ``J = sum_t g_t g_t' / s^2`` at the true track (the analytic
+    measure of what the batch can add, independent of the matcher)."""
+    T, dt, sig, ps = 30, 10.0, 6.0, 10.0
+    true_ne, v = _track(rng)
+    lat, lon = latlon(fmap, true_ne[:, 0], true_ne[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0.0, sig, T)
+    g = np.asarray(fmap.gradient_ne(lat, lon), float).reshape(T, 2)
+    J = g.T @ g / sig**2
+    P = np.eye(2) * ps**2
+    off = rng.multivariate_normal([0, 0], P)
+    if m.name == "pmf":
+        st = None
+        for k in range(T):
+            est = nav_estimate(fmap, k * dt, true_ne[k] + off, v, P)
+            st = m.initiate(est) if st is None else m.predict(st, est)
+            st = m.update(st, FieldReadings(np.array([k * dt]), z[k : k + 1], sig, KIND_G), fmap)
+        return m.to_fix(st), true_ne[-1], P, J
+    w = make_window(fmap, dt * np.arange(T), true_ne, z, sig, KIND_G, off, P, v)
+    return m.match(w, fmap), true_ne[-1], P, J
+
+
+@pytest.mark.parametrize("kind", ["tercom", "iccp", "pmf", "pmht"])
+def test_no_flat_map_refusal_when_the_fix_would_shrink_the_prior(gmap, kind):
+    """The case the rule is about: batches whose readings carry a fifth to all of the prior's information
+    (analytic Fisher information at the truth), so their fixes are wider than the prior in every direction (the
+    rule before 2026-12 refused these as "flat map") yet fusing them cuts the prior's variance by 15-50 %. None may
+    be refused as "flat map"; the issued fixes are honest. Gates of 4 prior sigmas, as in the gravity scenarios."""
+    cfg = {"kind": kind} if kind == "pmf" else {"kind": kind, "batch": T, "gate_sigma": 4.0}
+    m = build_matcher(cfg)
+    rng = np.random.default_rng(21)
+    built, wider, nees, refused = 0, 0, [], []
+    for _ in range(12):
+        fix, truth, P, J = _wide_fix_trial(m, gmap, rng)
+        ratio = float(np.linalg.eigvalsh(P @ J)[-1])  # what the readings can add, in the prior's units
+        if not 0.2 <= ratio <= 1.0:
+            continue
+        built += 1
+        if not fix.available:
+            refused.append(fix.reason)
+            continue
+        wider += bool(np.linalg.eigvalsh(np.linalg.solve(P, fix.cov_ne))[0] > 1.0)
+        d = local(gmap, fix.lat, fix.lon) - truth
+        nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
+    assert built >= 8, f"only {built} of 12 batches carry 0.2-1 of the prior's information"
+    assert not [r for r in refused if "flat map" in r], refused
+    assert wider >= built // 2, f"{kind}: {wider} of {built} fixes wider than the prior: the case is not built"
+    assert len(nees) >= built - 2 and np.mean(nees) <= 4.0, (kind, len(nees), np.mean(nees) if nees else None)

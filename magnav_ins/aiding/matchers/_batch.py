@@ -3,8 +3,11 @@
 * :func:`track_window` - a batch window's INS-indicated track in frame metres, its gates, the reading variance
   with the map's error (``map_error.resolve_map_error``) and the INS drift within the batch.
 * :func:`adds_information` / :func:`information_refusal` - the rule for issuing a fix (issue 16): a fix is issued
-  whenever its covariance is smaller than the prior's in some direction (it adds information, whatever the prior),
-  and refused as "flat map" only when it adds none.
+  whenever fusing it would shrink the prior's covariance (its information beyond the search gate's own is at least
+  ``MIN_INFORMATION_RATIO`` of the prior's in some direction: whatever the prior, and also when the fix is wider than
+  the prior), and refused as "flat map" only when it adds none. Until 2026-12 a fix had to be tighter than the prior
+  in some direction: on the QLD West grid (precision IMU, 1 mGal, 2 runs) about every second batch was refused as
+  "flat map" (TERCOM 41 of 86) although fusing its fix would still have shrunk the prior (97 % issued now).
 
 Map error and its correlation (ours, stated): reading ``t`` has variance ``s_t^2 = sigma^2 + b sigma_map,t^2``,
 ``sigma_map,t`` the map's 1-sigma error at the INS position; ``b = clip(ell / ds, 1, T)`` with ``ell`` the map
@@ -113,28 +116,68 @@ def reading_variance(
     return float(sensor_sigma) ** 2 + b * sig_m**2, me.source
 
 
-def adds_information(cov_fix: FloatArray, cov_prior: FloatArray, margin: float = 1.0) -> bool:
-    """True when ``cov_fix`` (2, 2) is smaller than ``cov_prior`` (2, 2) in some direction: the smallest
-    eigenvalue of ``P^-1/2 C P^-1/2`` is below ``margin`` (1: any direction where the fix is tighter)."""
+#: smallest information a fix must add, as a fraction of the prior's in its best direction (``adds_information``):
+#: fusing it shrinks the prior's variance there by at least 1 - 1 / (1 + 0.05) = 4.8 %
+MIN_INFORMATION_RATIO = 0.05
+
+
+def information_ratio(cov_fix: FloatArray, cov_prior: FloatArray, gate_half: FloatArray | None = None) -> float:
+    """Largest eigenvalue of ``P^1/2 (C^-1 - B^-1) P^1/2``: the readings' information in the fix (covariance ``C``
+    (2, 2) m^2) beyond the search gate's own, relative to the prior's (``P`` (2, 2) m^2), in its best direction.
+
+    ``B = diag(h_n^2, h_e^2) / 3`` is the variance of a uniform density over a gate of half-widths ``gate_half``
+    (h_n, h_e) m: what a matcher whose posterior is confined to the gate (TERCOM's offset grid, the point masses)
+    returns on a flat map, so its fix covariance holds the gate's information too; ``None``: no gate term (a
+    covariance from the readings alone). 0 where the fix adds nothing (or the prior has no uncertainty left in some
+    direction); fusing the fix shrinks the prior's variance by ``1 - 1 / (1 + ratio)`` in its best direction."""
     P = 0.5 * (np.asarray(cov_prior, float) + np.asarray(cov_prior, float).T)
     C = 0.5 * (np.asarray(cov_fix, float) + np.asarray(cov_fix, float).T)
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(C))):
-        return bool(np.all(np.isfinite(C)))
+        return 0.0
     ev, V = np.linalg.eigh(P)
     if ev[0] <= 0:
-        return False  # a prior without uncertainty in some direction: nothing to add there
-    W = V / np.sqrt(ev)  # P^-1/2 in the eigenbasis
-    return bool(np.linalg.eigvalsh(W.T @ C @ W)[0] < margin)
+        return 0.0  # a prior without uncertainty in some direction: nothing to add there
+    cev, CV = np.linalg.eigh(C)
+    if cev[0] <= 0:
+        return float("inf") if cev[-1] > 0 else 0.0
+    J = (CV / cev) @ CV.T
+    if gate_half is not None:
+        h = np.asarray(gate_half, float)
+        J = J - np.diag(3.0 / np.maximum(h, 1e-9) ** 2)
+    S = V * np.sqrt(ev)  # P^1/2 up to a rotation: S' J S has the eigenvalues of P^1/2 J P^1/2
+    return float(max(np.linalg.eigvalsh(S.T @ J @ S)[-1], 0.0))
 
 
-def information_refusal(t: float, cov_fix: FloatArray, cov_prior: FloatArray, source: str, score: float) -> Fix:
-    """The "no fix" of a fix that adds no information over its prior (reason names both sigmas)."""
-    sf = np.sqrt(np.linalg.eigvalsh(0.5 * (cov_fix + cov_fix.T)))
+def adds_information(
+    cov_fix: FloatArray,
+    cov_prior: FloatArray,
+    gate_half: FloatArray | None = None,
+    min_ratio: float = MIN_INFORMATION_RATIO,
+) -> bool:
+    """True when fusing the fix (covariance ``cov_fix`` (2, 2) m^2) would shrink the prior ``cov_prior`` (2, 2)
+    m^2: :func:`information_ratio` (beyond the gate of half-widths ``gate_half`` m, if given) at least
+    ``min_ratio``. A fix tighter than the prior in some direction always passes (ratio > 1 - 3 P / h^2 > 0.8 for
+    a gate of 4 prior sigmas); a fix wider than the prior everywhere passes while it still carries information."""
+    return information_ratio(cov_fix, cov_prior, gate_half) >= min_ratio
+
+
+def information_refusal(
+    t: float,
+    cov_fix: FloatArray,
+    cov_prior: FloatArray,
+    source: str,
+    score: float,
+    gate_half: FloatArray | None = None,
+) -> Fix:
+    """The "no fix" of a fix that adds no information over its prior (reason names the ratio and both sigmas)."""
+    sf = np.sqrt(np.maximum(np.linalg.eigvalsh(0.5 * (cov_fix + cov_fix.T)), 0.0))
     sp = np.sqrt(np.maximum(np.linalg.eigvalsh(0.5 * (cov_prior + cov_prior.T)), 0.0))
+    r = information_ratio(cov_fix, cov_prior, gate_half)
     return Fix.no_fix(
         t,
-        f"flat map: the fix adds no information over the prior (fix sigmas {sf[0]:.3g} / {sf[-1]:.3g} m, "
-        f"prior sigmas {sp[0]:.3g} / {sp[-1]:.3g} m)",
+        f"flat map: the fix adds no information over the prior (information ratio {r:.2g} < "
+        f"{MIN_INFORMATION_RATIO:g}; fix sigmas {sf[0]:.3g} / {sf[-1]:.3g} m, prior sigmas {sp[0]:.3g} / "
+        f"{sp[-1]:.3g} m)",
         source,
         score,
     )

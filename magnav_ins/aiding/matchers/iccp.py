@@ -182,8 +182,8 @@ class ICCPMatcher:
         A = np.eye(2) if not self.rotation else np.column_stack([np.eye(2), R @ _J @ (tw.x_ins[-1] - c)])
         C = A @ cov_b @ A.T + np.eye(2) * step**2 / 12.0
         prior = tw.cov[-1]
-        if not adds_information(C, prior):
-            return information_refusal(t_last, C, prior, self.name, chi2)
+        if not adds_information(C, prior, (hn, he)):
+            return information_refusal(t_last, C, prior, self.name, chi2, (hn, he))
         if chi2 > self.max_chi2:
             return Fix.no_fix(
                 t_last,

@@ -22,7 +22,7 @@ position (the grid rides with the INS: Bergman's time update moves the masses by
   for a free-running PMF, not for fusing).
 
 No fix: "off the map" (no map values under the grid), "flat map" when the fix adds no information over the prior
-(:func:`._batch.adds_information`), "at the edge" when more than ``edge_mass`` of the posterior sits on the grid's
+beyond the grid's own (:func:`._batch.adds_information`), "at the edge" when more than ``edge_mass`` of the posterior sits on the grid's
 border (the truth may be outside the grid).
 """
 
@@ -207,8 +207,9 @@ class PointMassFilter:
         Dn, De = float(state.an[1] - state.an[0]), float(state.ae[1] - state.ae[0])
         C = np.array([[np.sum(w * dn * dn), np.sum(w * dn * de)], [np.sum(w * dn * de), np.sum(w * de * de)]])
         C = C + np.diag([Dn * Dn, De * De]) / 12.0
-        if not adds_information(C, state.cov_ne):
-            return information_refusal(t, C, state.cov_ne, self.name, float(state.updates))
+        gate = (0.5 * float(state.an[-1] - state.an[0]), 0.5 * float(state.ae[-1] - state.ae[0]))
+        if not adds_information(C, state.cov_ne, gate):  # C holds the grid's own (diffuse) information
+            return information_refusal(t, C, state.cov_ne, self.name, float(state.updates), gate)
         edge = float(w[0].sum() + w[-1].sum() + w[1:-1, 0].sum() + w[1:-1, -1].sum())
         if edge > self.edge_mass:
             return Fix.no_fix(

@@ -17,7 +17,8 @@ offset over the grid (a flat prior over the gate), ``p(d) ~ prod_t N(z_t; m(x_t 
 Where the likelihood has several modes in the gate the second moment covers them. ``s_t^2`` is the sensor
 variance plus the map's error (:mod:`._batch`). No fix ("diverged") when the readings disagree with the map at
 ``d*`` (mean ``(z - m)^2 / v`` per reading above ``max_chi2``); "flat map" only when the fix adds no information over
-the prior (:func:`._batch.adds_information`); "off the map" when no offset has map values for every good reading.
+the prior beyond the offset grid's own (:func:`._batch.adds_information`); "off the map" when no offset has map
+values for every good reading.
 """
 
 from __future__ import annotations
@@ -103,8 +104,8 @@ class TercomMatcher:
         C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag([Dn**2, De**2]) / 12.0
         chi2 = float(np.mean(resid[:, k] ** 2 / v))
         prior = tw.cov[-1]
-        if not adds_information(C, prior):
-            return information_refusal(t_last, C, prior, self.name, chi2)
+        if not adds_information(C, prior, (hn, he)):  # C holds the offset grid's own (uniform) information
+            return information_refusal(t_last, C, prior, self.name, chi2, (hn, he))
         if chi2 > self.max_chi2:
             return Fix.no_fix(
                 t_last,
