@@ -13,6 +13,7 @@ temporary directory on free loopback ports and is stopped however the test ends 
 
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -87,19 +88,21 @@ def test_autopilot_reboot_imu_stream_back_within_5_s_and_no_position_from_0_0():
 
 @pytest.mark.slow
 def test_short_gnss_denied_flight_on_the_bridge_lands_near_home():
-    """About 2 minutes GNSS-denied on the bridge's GPS_INPUT alone (a 400 m square at 30 m, 15 m/s): no failsafe, the
+    """About 2 minutes GNSS-denied on the bridge's GPS_INPUT alone (a 500 m square at 25 m, 15 m/s, denied 50 s after
+    take-off: the bridge's magnetometer offset and INS biases are calibrated while GNSS-aided first): no failsafe, the
     autopilot's EKF within the issue's bounds (RMS < 50 m, max < 150 m), landing within 50 m of home, the GPS_INPUT
     stream above 9 Hz without a pause the autopilot would notice (AP_GPS wants a mean interval under 215 ms), no IMU
     gap, the bridge's trusted outputs honest (NEES)."""
     from magnav_ins.mavlink.sitl_flight import SITL_GRADE, FlightPlan, fly_square
 
     plan = FlightPlan(
-        home=HOME[:2], side_m=400.0, altitude_m=30.0, deny_after_s=20.0, grade=SITL_GRADE, time_limit_s=360.0
+        home=HOME[:2], side_m=500.0, altitude_m=25.0, deny_after_s=50.0, grade=SITL_GRADE, time_limit_s=360.0
     )
     out = fly_square(plan)
+    print(json.dumps(out))  # shown when an assertion fails
     assert out["landed"] and not out["aborted"], out
     assert out["failsafes"] == [], out["failsafes"]
-    assert out["gnss_denied_s"] >= 100.0, out
+    assert out["gnss_denied_s"] >= 90.0, out
     assert out["ekf_rms_horizontal_m"] < 50.0 and out["ekf_max_horizontal_m"] < 150.0, out
     assert out["landing_from_home_m"] < 50.0, out
     assert out["output_rate_hz"] > 9.0 and out["output_max_interval_s"] < 0.6, out

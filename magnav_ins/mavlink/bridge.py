@@ -962,6 +962,10 @@ class Bridge:
         self.health.map_fixes_issued += sum(1 for f in fixes[n0:] if f.available)
         self.health.map_fixes_accepted += sum(1 for x in inns[i0:] if x.accepted)
         for f in fixes[n0:]:
+            if f.available:
+                s = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(f.cov_ne, float)), 0.0, None))
+                log.info("map fix at t=%.1f s: %.7f, %.7f, sigma %.0f / %.0f m", f.t, math.degrees(f.lat),
+                         math.degrees(f.lon), s[0], s[-1])  # fmt: skip
             if not f.available:
                 key = f.reason.split(":")[0] or "unspecified"
                 self.health.no_fix_reasons[key] = self.health.no_fix_reasons.get(key, 0) + 1
@@ -1132,6 +1136,7 @@ class Bridge:
 
     def _send_output(self) -> None:
         c = self.config
+        self._count_fixes()  # counts (and logs) the map fixes as they come
         s = self._solution()
         if s is None:
             self._no_fix()

@@ -254,6 +254,14 @@ def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by st
         if gcs is not None:
             gcs.close()
         sitl.stop()
+    if plan.keep:  # for a look afterwards: truth and the autopilot's estimate, ground-station clock (monotonic)
+        np.savez(
+            work / "flight.npz",
+            truth=truth,
+            ekf=ekf,
+            times=np.array(times),
+            clock_offset=time.time() - time.monotonic(),
+        )
     _bridge_figures(out, summary_path, track_path, truth, times)
     out["wall_s"] = round(time.monotonic() - t_start, 1)
     if plan.keep:
