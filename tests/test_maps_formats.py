@@ -298,3 +298,52 @@ def test_every_real_file_opens_converts_and_samples_like_a_direct_read(shared_da
         assert np.array_equal(np.isnan(got), np.isnan(want)), f"{name}: NaN pattern differs"
         scale = np.nanmax(np.abs(v * factor))
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=2e-7 * scale)
+
+
+def _write_geosoft_grd(path, values, x0, y0, step, *, es=4, compressed=False):
+    """A Geosoft binary grid, version 2 (Geosoft "Grid File Format", as harmonica documents it): a 512-byte header
+    (ES, SF, NE, NV, KX as int32; DE, DV, X0, Y0, ROT, ZBASE, ZMULT as float64 at offsets 20 and 60), then the rows
+    from the south (KX = 1: NV rows of NE values), float32 with the dummy -1e32 for no data."""
+    import struct
+
+    nv, ne = values.shape
+    header = bytearray(512)
+    struct.pack_into("<5i", header, 0, es, 2, ne, nv, 1)
+    struct.pack_into("<5d", header, 20, step, step, x0, y0, 0.0)
+    struct.pack_into("<2d", header, 60, 0.0, 1.0)
+    body = np.where(np.isnan(values), -1e32, values).astype("<f4").tobytes()
+    path.write_bytes(bytes(header) + body)
+
+
+def test_geosoft_binary_grd_reads_its_nodes_in_its_own_crs(tmp_path):
+    """No real Geosoft .grd is in ../shared/data: the file is written here from the format's documented layout, so the
+    node values, the south-to-north row order, the dummy and the origin are independent truth for the reader."""
+    pytest.importorskip("harmonica")
+    ny, nx, step = 30, 40, 200.0
+    x0, y0 = 480_000.0, 5_990_000.0  # the south-west node (UTM 55S)
+    e = x0 + np.arange(nx) * step
+    n = y0 + np.arange(ny) * step
+    ee, nn = np.meshgrid(e, n)
+    v = _plane(ee, nn)
+    v[3, 4] = np.nan
+    p = tmp_path / "survey.grd"
+    _write_geosoft_grd(p, v, x0, y0, step)
+    with pytest.raises(MapError, match="crs"):
+        read_map(p, kind="total_field_anomaly_nt", unit="nT", altitude_m=80.0)
+    m = read_map(p, kind="total_field_anomaly_nt", unit="nT", altitude_m=80.0, crs=UTM55S)
+    assert m.frame == "projected" and "Geosoft" in m.metadata["format"]
+    assert np.isnan(m.values).sum() == 1
+    lat, lon = Projection(UTM55S).inverse(ee.ravel(), nn.ravel())
+    got = m.value(lat, lon)
+    ok = ~np.isnan(v.ravel())
+    np.testing.assert_allclose(got[ok], v.ravel()[ok], rtol=0, atol=1e-3)  # float32 rounding of ~100 nT values
+    assert np.isnan(got[~ok]).all()
+
+
+def test_a_truncated_geosoft_grd_is_one_message(tmp_path):
+    pytest.importorskip("harmonica")
+    p = tmp_path / "cut.grd"
+    _write_geosoft_grd(p, np.ones((10, 12)), 0.0, 0.0, 100.0)
+    p.write_bytes(p.read_bytes()[:600])
+    with pytest.raises(MapError, match="cut.grd"):
+        read_map(p, kind="total_field_anomaly_nt", unit="nT", altitude_m=0.0, crs=UTM55S)
