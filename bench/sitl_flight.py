@@ -26,6 +26,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
+import sys
 
 from magnav_ins.mavlink.sitl import sitl_dir
 from magnav_ins.mavlink.sitl_flight import SITL_GRADE, FlightPlan, fly_square
@@ -60,6 +62,8 @@ def main() -> None:
     ap.add_argument("-v", "--verbose", action="store_true")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(asctime)s %(message)s")
+    # a SIGTERM (or Ctrl-C) ends the flight through fly_square's clean-up: the SITL and the bridge are stopped
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     if sitl_dir() is None:
         raise SystemExit("../shared/tools/ardupilot-sitl is not beside the project")
     lat, lon = (float(x) for x in args.home.split(","))
