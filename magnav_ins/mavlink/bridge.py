@@ -1,8 +1,10 @@
 """The companion-computer bridge: autopilot IMU + magnetometer in, fused position out, over MAVLink.
 
-One event loop (:meth:`Bridge.poll`), no threads: decode what arrived, feed IMU samples to the online pipeline
-(INS + map matcher + fuser, :mod:`.online`), magnetometer readings as field readings and, while the autopilot's own
-GNSS is healthy, its fixes (:mod:`.gnss`); at the output rate send the fused position in the configured form.
+One event loop (:meth:`Bridge.poll`): decode what arrived, feed IMU samples to the online pipeline (INS + map matcher
++ fuser, :mod:`.online`; built with ``background_matching`` the matcher's scans run in one worker thread beside the
+loop), magnetometer readings as field readings and, while the autopilot's own GNSS is healthy, its fixes
+(:mod:`.gnss`); at the output rate send the fused position in the configured form. ``imu_world="flat"`` adapts a
+simulator's samples to the rotating Earth first (:mod:`.flat_world`).
 MAVLink encoding lives in :mod:`.link`; this module speaks SI.
 
 Life of a flight (the state is announced by STATUSTEXT once per change, rate-limited, and logged):
