@@ -160,6 +160,58 @@ class Pipeline:
         self.fuser.propagate(ImuBatch(np.array([t]), w[None, :], f[None, :]))
         self._t_imu = float(t)
 
+    def push_imu_batch(
+        self,
+        t: FloatArray,
+        gyro_b: FloatArray,
+        accel_b: FloatArray,
+        *,
+        altitude_hold: FloatArray | None = None,
+        attitudes: bool = False,
+    ) -> FloatArray | None:
+        """Several IMU samples (``t`` (m,) s increasing, rates (m,3) as :meth:`push_imu`): the same as
+        :meth:`push_imu` for each in turn (with the fuser's altitude hold moved to ``altitude_hold[k]`` m before
+        sample ``k``, :func:`magnav_ins.mavlink.baro.hold_height`), in one fuser call when no queued reading falls
+        among them. ``attitudes``: return the INS attitude ``q_nb`` (m,4) after each sample."""
+        t = np.asarray(t, dtype=float).reshape(-1)
+        w = np.asarray(gyro_b, dtype=float).reshape(-1, 3)
+        f = np.asarray(accel_b, dtype=float).reshape(-1, 3)
+        m = len(t)
+        if m == 0:
+            return np.zeros((0, 4)) if attitudes else None
+        if len(w) != m or len(f) != m:
+            raise InputError(f"Pipeline.push_imu_batch: {m} times but {len(w)} gyro and {len(f)} accel samples")
+        bad = ~(np.isfinite(t) & np.isfinite(w).all(axis=1) & np.isfinite(f).all(axis=1))
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(
+                f"Pipeline.push_imu: non-finite sample at t={float(t[k])!r}: gyro {w[k].tolist()}, accel {f[k].tolist()}"
+            )
+        prev_t = np.concatenate([[self._t_imu], t[:-1]])
+        bad = t <= prev_t + _TOL
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(
+                f"Pipeline.push_imu: time must increase: t={float(t[k])!r} s after t={float(prev_t[k])!r} s"
+            )
+        self._pending.sort(key=lambda x: x[0])
+        if self._pending and self._pending[0][0] <= t[-1] + _TOL:  # a queued reading falls among them
+            from .aiding.fusion.attitude_aid import ins_attitude
+
+            q = np.empty((m, 4))
+            for k in range(m):
+                if altitude_hold is not None:
+                    self.fuser.set_altitude_hold(float(altitude_hold[k]))
+                Pipeline.push_imu(self, float(t[k]), w[k], f[k])  # these samples are the fuser's own
+                q[k] = ins_attitude(self.fuser) if attitudes else 0.0
+            return q if attitudes else None
+        kw: dict = {} if altitude_hold is None else {"altitude_hold": altitude_hold}
+        if attitudes:
+            kw["attitudes"] = True
+        q = self.fuser.propagate(ImuBatch(t, w, f), **kw)
+        self._t_imu = float(t[-1])
+        return q if attitudes else None
+
     def push_reading(self, t: float, value: FloatArray | float) -> Fix | None:
         """One field reading at ``t`` (s) in the map's unit. Returns the fix issued at this reading, if any
         (readings ahead of the IMU are queued and return None)."""

@@ -3,7 +3,7 @@ out-of-range keys, implausible values, unwritable outputs. Each case runs throug
 end with exit status 2, exactly one line on stderr (``magnav-ins: error: ...``) naming the file / row / key /
 option, and no output (nor ``.part`` file) left behind.
 
-Rows for ``replay`` and ``bridge`` beyond the generic ones (a missing or junk log) belong to their own tests
+Further rows for ``replay`` and ``bridge`` (log formats, messages of each topic, the link) are in their own tests
 (``tests/test_replay.py``, ``tests/test_mavlink_*.py``)."""
 
 from __future__ import annotations
@@ -97,6 +97,9 @@ def work(tmp_path, monkeypatch):
     (tmp_path / "imu_gyro_1e6.csv").write_text(_imu_rows(gyro_y=lambda k: 1e6 if k == 120 else 0.0))
     (tmp_path / "imu_in_g.csv").write_text(_imu_rows(accel_z=-1.0))
     (tmp_path / "imu_nan.csv").write_text(_imu_rows().replace("\n0.42,0,0.0,", "\n0.42,0,nan,"))
+    (tmp_path / "imu_gap.csv").write_text(
+        IMU_HEADER + "".join(f"{k / 100 + (3600.0 if k >= 100 else 0.0):.2f},0,0,0,0,0,-9.8\n" for k in range(200))
+    )
     (tmp_path / "cal_nt.csv").write_text(_level_circle_nt())
     (tmp_path / "cal_gauss.csv").write_text(_level_circle_nt(1e-5))
     (tmp_path / "points.csv").write_text("lat_deg,lon_deg\n-21.0,140.7\n")
@@ -337,6 +340,95 @@ CASES = [
     Case("replay-missing", ("replay", "nope.ulg", "--map", MAP), ("nope.ulg",)),
     Case("replay-junk", ("replay", "junk.bin", "--map", MAP, "--out", "r.csv"), ("junk.bin",), ("r.csv",)),
     Case("replay-out-folder", ("replay", "junk.bin", "--map", MAP, "--out", "adir"), ("--out adir", "is a folder")),
+    Case(
+        "replay-out-under-file",
+        ("replay", "imu.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--out", "afile/r.csv"),
+        ("--out afile/r.csv", "afile is a file"),
+    ),  # fmt: skip
+    Case("replay-empty", ("replay", "empty", "--map", MAP, "--out", "r.csv"), ("empty",), ("r.csv",)),
+    Case("replay-folder", ("replay", "adir", "--map", MAP, "--out", "r.csv"), ("adir",), ("r.csv",)),
+    Case(
+        "replay-no-init",
+        ("replay", "imu.csv", "--map", MAP, "--out", "r.csv"),
+        ("imu.csv", "CSV", "--init"),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-init-junk",
+        ("replay", "imu.csv", "--map", MAP, "--init", "1,2,x", "--out", "r.csv"),
+        ("--init",),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-init-range",
+        ("replay", "imu.csv", "--map", MAP, "--init", "95,140,400,0", "--out", "r.csv"),
+        ("--init", "latitude"),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-nan-row",
+        ("replay", "imu_nan.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--out", "r.csv"),
+        ("imu_nan.csv", "row 43", "'gyro_y'"),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-gap-stop",
+        ("replay", "imu_gap.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--on-gap", "stop", "--out", "r.csv"),
+        ("imu_gap.csv", "row 101", "IMU gap of 3600", "t=0.990000 -> 3601.000000 s"),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-max-gap",
+        ("replay", "imu.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--max-gap", "0", "--out", "r.csv"),
+        ("--max-gap",),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-interval",
+        ("replay", "imu.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--output-interval", "-1", "--out", "r.csv"),
+        ("--output-interval",),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-duration",
+        ("replay", "imu.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--duration", "0", "--out", "r.csv"),
+        ("--duration",),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-date",
+        ("replay", "imu.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--date", "2020-13-01"),
+        ("--date",),
+    ),  # fmt: skip
+    Case(
+        "replay-map-junk",
+        ("replay", "imu.csv", "--map", "junk.bin", "--init", "-21.8,140.7,400,0", "--out", "r.csv"),
+        ("junk.bin",),
+        ("r.csv",),
+    ),  # fmt: skip
+    Case(
+        "replay-summary-folder",
+        ("replay", "imu.csv", "--map", MAP, "--init", "-21.8,140.7,400,0", "--summary-json", "adir"),
+        ("--summary-json adir", "is a folder"),
+    ),  # fmt: skip
+    # ---- bridge (refused before any connection is tried)
+    Case("bridge-connect-junk", ("bridge", "--connect", "udpin:host:notaport", "--map", MAP), ("--connect",)),
+    Case(
+        "bridge-map-missing", ("bridge", "--connect", "udpin:127.0.0.1:14550", "--map", "nope.nc"), ("nope.nc",)
+    ),  # fmt: skip
+    Case(
+        "bridge-init-junk",
+        ("bridge", "--connect", "udpin:127.0.0.1:14550", "--map", MAP, "--init", "a,b"),
+        ("--init",),
+    ),  # fmt: skip
+    Case(
+        "bridge-summary-folder",
+        ("bridge", "--connect", "udpin:127.0.0.1:14550", "--map", MAP, "--summary-json", "adir", "--duration", "5"),
+        ("--summary-json adir", "is a folder"),
+    ),  # fmt: skip
+    # ---- suite
+    Case("suite-seeds-0", ("suite", "--seeds", "0"), ("--seeds",)),
+    Case("suite-rio-missing", ("suite", "--only", "rio", "--rio", "nope.csv.xz"), ("nope.csv.xz",)),
 ]
 
 

@@ -17,7 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from magnav_ins.cli import main
-from magnav_ins.core.errors import ConfigError
+from magnav_ins.core.errors import ConfigError, InputError
 from magnav_ins.core.frames import C_nb_from_q, euler_from_q_nb, horizontal_error_m, meters_to_latlon
 from magnav_ins.core.units import NT_PER_GAUSS
 from magnav_ins.mavlink.replay import LogRecording, _reason_key, initial_state, read_log
@@ -555,3 +555,164 @@ def test_px4_small_log_height_follows_its_barometer(shared_data):
     # after 1 s averaging): measured correlation 0.68; a held height would have none
     assert np.corrcoef(h[5:], expected[5:])[0, 1] > 0.5
     assert h[0] == pytest.approx(float(np.interp(res.t[0], rec.gnss.t, rec.gnss.h)))
+
+
+# ------------------------------------------------------------------------------------------------ IMU gaps
+GAP_S = 3600.0  #: a one-hour jump in the log's clock
+GAP_AT_S = 45.0  #: ... after this many seconds of the simulated flight
+
+
+def _gapped_csv(sim, path: Path) -> int:
+    """The simulated flight as a CSV whose clock jumps by GAP_S after GAP_AT_S (the samples themselves continue:
+    the vehicle did not move during the "gap"); returns the 0-based index of the first sample after the jump."""
+    truth, imu = sim["truth"], sim["imu"]
+    k_gap = int(GAP_AT_S * RATE_HZ) + 1
+    t = truth.t + T0
+    t = np.where(np.arange(len(t)) >= k_gap, t + GAP_S, t)
+    cols = np.column_stack([t, imu.gyro_b, imu.accel_b, sim["mag_b"]])
+    np.savetxt(path, cols, delimiter=",", fmt="%.17g", comments="",
+               header="t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,mag_x,mag_y,mag_z")  # fmt: skip
+    return k_gap
+
+
+def _gapped_tlog(sim, path: Path) -> int:
+    """The simulated tlog (IMU, attitude, GNSS) with the clock jump of :func:`_gapped_csv`."""
+    from magnav_ins.mavlink.link import AttitudeMessage, ImuMessage, PositionMessage, write_tlog
+
+    truth, imu = sim["truth"], sim["imu"]
+    k_gap = int(GAP_AT_S * RATE_HZ) + 1
+    roll, pitch, yaw = euler_from_q_nb(truth.q_nb)
+    msgs: list = []
+    for k in range(len(truth)):
+        t = float(truth.t[k]) + T0 + (GAP_S if k >= k_gap else 0.0)
+        msgs.append(ImuMessage(t, imu.gyro_b[k], imu.accel_b[k], sim["mag_b"][k], "HIGHRES_IMU", 1, 1))
+        if k % 5 == 0:
+            msgs.append(AttitudeMessage(t, float(roll[k]), float(pitch[k]), float(yaw[k]), 1, 1))
+            msgs.append(
+                PositionMessage(t, float(truth.lat[k]), float(truth.lon[k]), float(truth.h[k]), truth.v_n[k], 1, 1)
+            )
+    write_tlog(path, msgs)
+    return k_gap
+
+
+def test_an_hour_gap_restarts_the_ins_instead_of_integrating_across(sim, tmp_path, capsys):
+    """Item 7 of issue 18: a 1 h jump in ``t`` was integrated across (the vehicle moved ~7,800 km, exit 0). Now, as
+    the bridge: the INS restarts at the sample after the gap from its last estimate, the position sigma grown by
+    speed x gap, the summary says so (row and times); the track is continuous, and on a tlog (with GNSS) its error
+    against the truth (the samples continue where they stopped) stays that of the flight without the jump."""
+    for kind in ("csv", "tlog"):
+        log = tmp_path / f"gap.{kind}"
+        k_gap = _gapped_csv(sim, log) if kind == "csv" else _gapped_tlog(sim, log)
+        out, js = tmp_path / f"traj_{kind}.csv", tmp_path / f"s_{kind}.json"
+        rc, stdout, err = _cli(capsys, log, "--map", MAP, f"--init={INIT}", "--date", DATE, "--fusion",
+                               "free_inertial", "--output-interval", 1.0, "--out", out, "--summary-json", js)  # fmt: skip
+        assert rc == 0, err
+        g = json.loads(js.read_text())["imu_gaps"]
+        assert g["count"] == 1 and g["longest"]["row"] == k_gap + 1
+        t_before, t_after = T0 + sim["truth"].t[k_gap - 1], T0 + sim["truth"].t[k_gap] + GAP_S
+        assert g["longest"]["t_before"] == pytest.approx(t_before, abs=1e-5)
+        assert g["longest"]["t_after"] == pytest.approx(t_after, abs=1e-5)
+        assert f"row {k_gap + 1}" in stdout and f"t={t_before:.3f} -> {t_after:.3f} s" in stdout
+        assert "never integrated across" in stdout and "INS restarted" in stdout
+        traj = _read_traj(out)
+        step = horizontal_error_m(np.radians(traj["lat_deg"][1:]), np.radians(traj["lon_deg"][1:]),
+                                  np.radians(traj["lat_deg"][:-1]), np.radians(traj["lon_deg"][:-1]))  # fmt: skip
+        assert step.max() < 2.0 * SPEED_MPS * 1.0 + 5.0  # no jump: at most the distance flown in an output interval
+        after = traj["t"] >= t_after - 1e-6
+        i = int(np.argmax(after))
+        speed = math.hypot(traj["vn"][i - 1], traj["ve"][i - 1])
+        assert traj["sigma_n_m"][i] >= traj["sigma_n_m"][i - 1] + 0.99 * speed * GAP_S  # grown by speed x gap
+        assert traj["t"][i] == pytest.approx(t_after, abs=1e-5)
+        if kind == "tlog":  # the INS knew its velocity (GNSS): 40 m/s x 1 h of sigma, and it stayed on the truth
+            assert speed == pytest.approx(SPEED_MPS, rel=0.02)
+            t_truth = np.where(after, traj["t"] - GAP_S, traj["t"]) - T0
+            lat_t = np.interp(t_truth, sim["truth"].t, sim["truth"].lat)
+            lon_t = np.interp(t_truth, sim["truth"].t, sim["truth"].lon)
+            e = horizontal_error_m(np.radians(traj["lat_deg"]), np.radians(traj["lon_deg"]), lat_t, lon_t)
+            assert e.max() < 500.0, e.max()  # tactical INS, 90 s, 68 m start error (integrated across: ~1.4e5 m)
+
+
+def test_gap_refused_with_on_gap_stop_and_in_tlog_and_ulog(sim, tmp_path, capsys):
+    """``--on-gap stop`` refuses the log before replaying it (one line naming the row and the times, exit 2, no
+    output); a tlog and a ULog with the same jump restart like the CSV (the check is on the IMU stream)."""
+    from magnav_ins.mavlink.link import ImuMessage, write_tlog
+    from magnav_ins.mavlink.replay import replay
+
+    csv = tmp_path / "gap.csv"
+    k_gap = _gapped_csv(sim, csv)
+    err = _assert_fails(
+        capsys, tmp_path, csv, f"--init={INIT}", "--on-gap", "stop", match=f"row {k_gap + 1}: IMU gap of 3600.04 s"
+    )
+    assert "longer than --max-gap 0.5 s" in err and "--on-gap restart" in err
+    _assert_fails(capsys, tmp_path, csv, f"--init={INIT}", "--max-gap", "-1", match="--max-gap")
+    from magnav_ins.commands.replay import MAX_GAP_S as cli_default
+    from magnav_ins.mavlink.bridge import BridgeConfig
+    from magnav_ins.mavlink.online import MAX_GAP_S
+
+    assert cli_default == MAX_GAP_S == BridgeConfig.max_gap_s  # the replay bridges what the bridge bridges
+    truth, imu = sim["truth"], sim["imu"]
+    t = truth.t + T0 + np.where(np.arange(len(truth)) >= k_gap, GAP_S, 0.0)
+    tlog = tmp_path / "gap.tlog"
+    write_tlog(tlog, [ImuMessage(float(t[k]), imu.gyro_b[k], imu.accel_b[k], sim["mag_b"][k], "HIGHRES_IMU", 1, 1)
+                      for k in range(len(t))])  # fmt: skip
+    ulg = tmp_path / "gap.ulg"
+    write_ulog(ulg, {"sensor_combined": _sensor_combined(np.round(t * 1e6).astype(np.int64), imu.gyro_b, imu.accel_b)})
+    init = (math.radians(-21.7996), math.radians(140.7205), 400.0, math.radians(90.0))
+    for path in (tlog, ulg):
+        rec = read_log(path)
+        res = replay(rec, None, init=init, fusion="free_inertial", matcher="none", output_dt=1.0)
+        assert len(res.gaps) == 1 and res.gaps[0]["row"] == k_gap + 1, path
+        assert res.gaps[0]["gap_s"] == pytest.approx(GAP_S + 1.0 / RATE_HZ, abs=1e-3)
+        assert res.summary()["imu_gaps"]["count"] == 1
+        assert np.max(np.abs(np.diff(res.trajectory.lat))) < 1e-4  # no 7,800 km step (1e-4 rad = 640 m)
+        with pytest.raises(InputError, match=f"row {k_gap + 1}: IMU gap"):
+            replay(rec, None, init=init, fusion="free_inertial", matcher="none", on_gap="stop")
+        # a short gap (two samples missing, 0.12 s) is bridged: integrated, no restart
+        short = read_log(path)
+        res = replay(short, None, init=init, fusion="free_inertial", matcher="none", duration_s=40.0)
+        assert res.gaps == ()
+
+
+def test_batched_replay_equals_sample_by_sample(sim):
+    """The replay feeds runs of samples between events to the pipeline in one call; the result is the same as the
+    bridge's way, sample by sample (every output bit for bit), for the UKF with fixes and for the free INS."""
+    from magnav_ins.maps.builtin import load_map
+    from magnav_ins.mavlink.bridge import ScalarAnomalyModel
+    from magnav_ins.mavlink.replay import make_online_pipeline, replay
+
+    rec = read_log(sim["tlog"])
+    fmap = load_map(MAP).with_error_layer(0.0, 150.0, "the readings come from this map")  # fixes get accepted
+    init = (math.radians(-21.7996), math.radians(140.7205), 400.0, math.radians(90.0))
+
+    class OneByOne:
+        """The pipeline with its batch input replaced by sample-by-sample push_imu (the bridge's feed)."""
+
+        def __init__(self, pipe) -> None:  # noqa: ANN001
+            self.p = pipe
+
+        def __getattr__(self, name: str):  # noqa: ANN204
+            return getattr(self.p, name)
+
+        def push_imu_batch(self, t, w, f, *, altitude_hold=None, attitudes=False):  # noqa: ANN001, ANN202, ARG002
+            for k in range(len(t)):
+                self.p.push_imu(float(t[k]), w[k], f[k])
+
+    for fusion in ("ukf", "free_inertial"):
+        kw = {"fusion": fusion, "matcher": "mlr", "attitude_sigma_rad": (0.01, 0.01, 0.05)}
+        runs = []
+        for wrap in (False, True):
+
+            def factory(nav, sigma, wrap=wrap, kw=kw):  # noqa: ANN001, ANN202
+                p = make_online_pipeline(nav, sigma, fmap, **kw)
+                return OneByOne(p) if wrap else p
+
+            runs.append(replay(rec, fmap, init=init, field_model=ScalarAnomalyModel(DATE), reading_interval_s=0.5,
+                               output_dt=1.0, pipeline_factory=factory))  # fmt: skip
+        a, b = runs
+        assert len(a.t) == len(b.t) > 80
+        for x, y in ((a.trajectory.lat, b.trajectory.lat), (a.trajectory.v_n, b.trajectory.v_n),
+                     (a.trajectory.q_nb, b.trajectory.q_nb), (a.sigma_ne, b.sigma_ne), (a.hpl_m, b.hpl_m)):  # fmt: skip
+            np.testing.assert_array_equal(x, y)
+        assert [f.available for f in a.fixes] == [f.available for f in b.fixes]
+        if fusion == "ukf":
+            assert sum(i.accepted for i in a.innovations) >= 1

@@ -252,6 +252,11 @@ def run(args: argparse.Namespace) -> int:
         attitude_aid=not args.no_attitude_aid,
         imu_world=args.imu_world,
     )
+    from ..core.atomic import check_output_file
+
+    for option, path in (("--summary-json", args.summary_json), ("--track-csv", args.track_csv)):
+        if path:
+            check_output_file(path, option)  # before the bridge runs, not when it stops
     fmap = load_map(args.map)
     calibration = MagCalibration.from_json(args.calibration) if args.calibration else None
     date = args.date or _dt.date.today().isoformat()

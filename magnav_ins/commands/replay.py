@@ -15,10 +15,15 @@ import argparse
 import datetime as _dt
 import json
 import math
+import sys
+import time
 from pathlib import Path
 
 from ..core.atomic import check_output_file, write_text_atomic
 from ..core.errors import ConfigError
+
+#: as :data:`magnav_ins.mavlink.online.MAX_GAP_S` (the bridge's; not imported here: the parser stays light)
+MAX_GAP_S = 0.5
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -49,6 +54,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--output-interval", type=float, default=0.2, help="trajectory output interval, s (default 0.2)")
     p.add_argument("--duration", type=float, default=None, help="replay only this many seconds from the start")
     p.add_argument("--geoid-height", type=float, default=0.0, help="geoid height above the ellipsoid, m (tlog MSL)")
+    p.add_argument(
+        "--max-gap",
+        type=float,
+        default=MAX_GAP_S,
+        help=f"longest IMU interval integrated, s (default {MAX_GAP_S:g}, as the bridge); a longer gap: see --on-gap",
+    )
+    p.add_argument(
+        "--on-gap",
+        choices=["restart", "stop"],
+        default="restart",
+        help="after an IMU gap longer than --max-gap: restart the INS from its last estimate with the position sigma "
+        "grown by speed x gap, as the bridge does (default), or stop: refuse the log",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar (shown on a terminal, on stderr)")
     p.set_defaults(handler=run)
 
 
@@ -88,6 +107,9 @@ def format_summary(s: dict, rec, map_spec: str, date: str, date_source: str) -> 
         f"init from {s['init']}, IGRF date {date} ({date_source})",
         f"  fixes: {s['fix_attempts']} attempts, {s['fixes_issued']} issued, {s['fixes_accepted']} accepted",
     ]
+    if "replay_cpu_s" in s:
+        rate = s["imu_samples"] / max(s["replay_cpu_s"], 1e-9)
+        lines.insert(2, f"  replayed in {s['replay_cpu_s']:.1f} s of CPU ({rate:,.0f} IMU samples/s)")
     if s["no_fix_reasons"]:
         lines.append("  no fix: " + "; ".join(f"{r} x{n}" for r, n in s["no_fix_reasons"].items()))
     if s["rejected_reasons"]:
@@ -96,6 +118,16 @@ def format_summary(s: dict, rec, map_spec: str, date: str, date_source: str) -> 
             lines.append("  rejected by the fuser: " + "; ".join(f"{r} x{n}" for r, n in rej.items()))
     if not s["map_covers_start"]:
         lines.append(f"  note: the map {map_spec} does not cover the start position: the INS ran unaided")
+    g = s.get("imu_gaps")
+    if g:
+        lg = g["longest"]
+        lines.append(
+            f"  IMU gaps: {g['count']} longer than {g['max_gap_s']:g} s, never integrated across: the INS restarted from "
+            f"its last estimate after each, position sigma grown by speed x gap (the longest {lg['gap_s']:.1f} s at row "
+            f"{lg['row']}, t={lg['t_before']:.3f} -> {lg['t_after']:.3f} s, sigma then {lg['sigma_m']:.0f} m; "
+            f"{g['readings_dropped']} magnetometer samples inside gaps dropped)"
+        )
+    lines += [f"  note: {n}" for n in s.get("notes", [])]
     lines += [f"  note: {n}" for n in rec.notes]
     if rec.mag_t.size == 0:
         lines.append("  note: the log holds no magnetometer data: the INS ran unaided")
@@ -109,10 +141,13 @@ def format_summary(s: dict, rec, map_spec: str, date: str, date_source: str) -> 
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+    from tqdm.auto import tqdm
+
     from ..aiding.calibration import MagCalibration
     from ..maps.builtin import load_map
     from ..mavlink.bridge import ScalarAnomalyModel
-    from ..mavlink.replay import read_log, replay, write_trajectory
+    from ..mavlink.replay import initial_state, read_log, replay, write_trajectory
 
     init = parse_init(args.init)
     for option, path in (("--out", args.out), ("--summary-json", args.summary_json)):
@@ -124,29 +159,44 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"--{name.replace('_', '-')} {v!r}: expected a positive number")
     if not (math.isfinite(args.reading_interval) and args.reading_interval >= 0):
         raise ConfigError(f"--reading-interval {args.reading_interval!r}: expected a number >= 0 s")
+    if not (math.isfinite(args.max_gap) and args.max_gap > 0):
+        raise ConfigError(f"--max-gap {args.max_gap!r}: expected a positive number of seconds")
     if args.window < 1 or args.match_every < 1:
         raise ConfigError(f"--window {args.window} / --match-every {args.match_every}: expected integers >= 1")
     rec = read_log(args.log, geoid_height_m=args.geoid_height)
     fmap = load_map(args.map)
     calibration = MagCalibration.from_json(args.calibration) if args.calibration else None
     date, date_source = _date(args, rec)
-    res = replay(
-        rec,
-        fmap,
-        init=init,
-        init_sigma_m=args.init_sigma,
-        field_model=ScalarAnomalyModel(date, calibration),
-        reading_interval_s=args.reading_interval,
-        output_dt=args.output_interval,
-        duration_s=args.duration,
-        grade=args.grade,
-        matcher=args.matcher,
-        fusion=args.fusion,
-        reading_sigma=args.reading_sigma,
-        window=args.window,
-        match_every=args.match_every,
-    )
+    _, k0, _ = initial_state(rec, init)
+    total = len(rec.imu) - k0 - 1
+    if args.duration is not None and args.duration > 0:
+        total = int(np.searchsorted(rec.imu.t, rec.imu.t[k0] + args.duration + 1e-9, side="right")) - k0 - 1
+    # a bar on a terminal only (tqdm's disable=None), on stderr, gone when done; --quiet: none
+    bar = tqdm(total=total, desc="replay", unit="sample", unit_scale=True, mininterval=0.5, leave=False,
+               disable=True if args.quiet else None, file=sys.stderr)  # fmt: skip
+    cpu0 = time.process_time()
+    with bar:
+        res = replay(
+            rec,
+            fmap,
+            init=init,
+            init_sigma_m=args.init_sigma,
+            field_model=ScalarAnomalyModel(date, calibration),
+            reading_interval_s=args.reading_interval,
+            output_dt=args.output_interval,
+            duration_s=args.duration,
+            grade=args.grade,
+            matcher=args.matcher,
+            fusion=args.fusion,
+            reading_sigma=args.reading_sigma,
+            window=args.window,
+            match_every=args.match_every,
+            max_gap_s=args.max_gap,
+            on_gap=args.on_gap,
+            progress=bar.update,
+        )
     summary = res.summary()
+    summary["replay_cpu_s"] = time.process_time() - cpu0
     if args.out is not None:
         write_trajectory(args.out, res)
     if args.summary_json is not None:

@@ -37,6 +37,11 @@ def handle(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
     only = tuple(g.strip() for g in args.only.split(",") if g.strip()) if args.only else None
+    from ..studies.suite import RIO_SURVEY_DEFAULT
+
+    asked = (only is not None and "rio" in only) or Path(args.rio) != RIO_SURVEY_DEFAULT
+    if asked and not Path(args.rio).is_file():  # asked for by name: not skipped in silence ("0 cases, 0 runs")
+        raise ConfigError(f"--rio {args.rio}: no such file (the Rio survey lives in ../shared/data beside the project)")
     res = run_suite(quick=args.quick, seeds=args.seeds, jobs=args.jobs, only=only, rio_survey=args.rio,
                     quiet=args.quiet or args.json)  # fmt: skip
     text = report(res)

@@ -57,6 +57,7 @@ from ..core.types import FloatArray, ImuBatch, ImuIncrements, NavState, NavTraje
 
 __all__ = [
     "SAMPLE_TYPES",
+    "AttitudeSums",
     "NavTrajectoryBatch",
     "SampleMeans",
     "StrapdownStepper",
@@ -416,6 +417,112 @@ def _stepper_step(
     return True
 
 
+@njit(cache=True)
+def _dcm_into(q: FloatArray, C: FloatArray) -> None:
+    """``C_nb`` of the unit scalar-last quaternion ``q`` written into ``C`` (3,3) (the formula of
+    :func:`magnav_ins.aiding.fusion.common._dcm`)."""
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    C[0, 0] = 1.0 - 2.0 * (y * y + z * z)
+    C[0, 1] = 2.0 * (x * y - z * w)
+    C[0, 2] = 2.0 * (x * z + y * w)
+    C[1, 0] = 2.0 * (x * y + z * w)
+    C[1, 1] = 1.0 - 2.0 * (x * x + z * z)
+    C[1, 2] = 2.0 * (y * z - x * w)
+    C[2, 0] = 2.0 * (x * z - y * w)
+    C[2, 1] = 2.0 * (y * z + x * w)
+    C[2, 2] = 1.0 - 2.0 * (x * x + y * y)
+
+
+@njit(cache=True)
+def _stepper_run_sums(
+    s: FloatArray,
+    t: FloatArray,
+    w: FloatArray,
+    f: FloatArray,
+    coning_sculling: bool,
+    holds: FloatArray,
+    C_sum: FloatArray,
+    fn_sum: FloatArray,
+    Cf_sum: FloatArray,
+    Cw_sum: FloatArray,
+    C_prev: FloatArray,
+    acc: FloatArray,
+    t_cov: float,
+    cov_step_s: float,
+    scale_sums: bool,
+    q_out: FloatArray,
+) -> int:
+    """Rate samples ``t`` (m,) s, ``w`` rad/s, ``f`` m/s^2 (m,3) (already bias-corrected) through the stepper
+    work vector ``s``, sample ``k`` with the altitude hold ``holds[k]`` (NaN: free), accumulating the attitude
+    integrals of one covariance step (:class:`AttitudeSums`: trapezoid of ``C_nb`` over each sample); the attitude
+    after each sample goes to ``q_out[k]``. Stops after the sample that ends a covariance step
+    (``t - t_cov >= cov_step_s - 1e-9``) and returns the number of samples done; ``-(k + 1)`` when sample ``k``
+    does not advance the time (nothing done from it on)."""
+    C0 = np.empty((3, 3))
+    C1 = np.empty((3, 3))
+    x = s[1 : 1 + _NX]
+    prev = s[1 + _NX :]
+    m = t.shape[0]
+    for k in range(m):
+        dt = t[k] - s[0]
+        if not (dt > 0.0):
+            return -(k + 1)
+        if acc[1] > 0.0:
+            C0[:, :] = C_prev
+        else:
+            _dcm_into(x[_Q : _Q + 4], C0)
+        _step(x, prev, dt, w[k, 0] * dt, w[k, 1] * dt, w[k, 2] * dt, f[k, 0] * dt, f[k, 1] * dt, f[k, 2] * dt,
+              coning_sculling, holds[k])  # fmt: skip
+        s[0] = t[k]
+        _dcm_into(x[_Q : _Q + 4], C1)
+        for i in range(4):
+            q_out[k, i] = x[_Q + i]
+        f0, f1, f2 = f[k, 0], f[k, 1], f[k, 2]
+        for i in range(3):
+            for j in range(3):
+                C_mid = 0.5 * (C0[i, j] + C1[i, j])
+                C_sum[i, j] += C_mid * dt
+                if scale_sums:
+                    Cf_sum[i, j] += C_mid * f[k, j] * dt
+                    Cw_sum[i, j] += C_mid * w[k, j] * dt
+            fn_sum[i] += (0.5 * (C0[i, 0] + C1[i, 0]) * f0 + 0.5 * (C0[i, 1] + C1[i, 1]) * f1
+                          + 0.5 * (C0[i, 2] + C1[i, 2]) * f2) * dt  # fmt: skip
+        C_prev[:, :] = C1
+        acc[0] += dt
+        acc[1] = 1.0
+        if t[k] - t_cov >= cov_step_s - 1e-9:
+            return k + 1
+    return m
+
+
+class AttitudeSums:
+    """The attitude integrals of one covariance step, accumulated sample by sample by
+    :meth:`StrapdownStepper.run_with_sums`: ``C_sum`` = int C_nb dt, ``fn_sum`` = int C_nb f_b dt, ``Cf_sum`` =
+    int C_nb diag(f_b) dt, ``Cw_sum`` = int C_nb diag(omega_ib_b) dt (the last two only when asked for), over
+    ``dt_sum`` s; ``C_prev`` the attitude at the last sample (the next sample's start; unset after :meth:`clear`,
+    when the next sample reads the INS attitude, which a correction may have changed)."""
+
+    __slots__ = ("C_sum", "fn_sum", "Cf_sum", "Cw_sum", "C_prev", "_acc")
+
+    def __init__(self) -> None:
+        self.C_sum = np.zeros((3, 3))
+        self.fn_sum = np.zeros(3)
+        self.Cf_sum = np.zeros((3, 3))
+        self.Cw_sum = np.zeros((3, 3))
+        self.C_prev = np.zeros((3, 3))
+        self._acc = np.zeros(2)  # dt_sum, C_prev valid
+
+    def clear(self) -> None:
+        """Start a new covariance step."""
+        for a in (self.C_sum, self.fn_sum, self.Cf_sum, self.Cw_sum, self._acc):
+            a.fill(0.0)
+
+    @property
+    def dt_sum(self) -> float:
+        """Length of the step so far, s."""
+        return float(self._acc[0])
+
+
 def _state_vector(nav: NavState) -> FloatArray:
     x = np.empty(_NX)
     x[_LAT], x[_LON], x[_H] = nav.lat, nav.lon, nav.h
@@ -473,6 +580,41 @@ class StrapdownStepper:
     def step_increment(self, t: float, dtheta_b: FloatArray, dv_b: FloatArray) -> None:
         """Advance to ``t`` (s) with angle increment ``dtheta_b`` (rad) and velocity increment ``dv_b`` (m/s)."""
         self._step(t, dtheta_b, dv_b, False)
+
+    def run_with_sums(
+        self,
+        t: FloatArray,
+        gyro_b: FloatArray,
+        accel_b: FloatArray,
+        sums: AttitudeSums,
+        *,
+        holds: FloatArray | None = None,
+        t_cov: float = -math.inf,
+        cov_step_s: float = math.inf,
+        scale_sums: bool = False,
+        q_out: FloatArray | None = None,
+    ) -> int:
+        """Step through rate samples ``t`` (m,) s, ``gyro_b`` rad/s, ``accel_b`` m/s^2 (m,3) in one compiled call
+        (the same numbers as :meth:`step_rate` sample by sample) while adding each sample's attitude integrals to
+        ``sums`` (a fuser's covariance step, :class:`AttitudeSums`). ``holds`` (m,): the altitude hold of each
+        sample (m; NaN frees the vertical channel; default the current hold). Stops after the first sample with
+        ``t - t_cov >= cov_step_s - 1e-9`` (the end of a covariance step) and returns how many samples it did.
+        ``q_out`` (m,4): filled with the attitude after each sample. Samples must be finite (the caller checks);
+        a time that does not advance raises :class:`InputError`."""
+        m = len(t)
+        if holds is None:
+            holds = np.full(m, self._hold)
+        if q_out is None:
+            q_out = np.empty((m, 4))
+        n = _stepper_run_sums(self._s, t, gyro_b, accel_b, self._cs, holds, sums.C_sum, sums.fn_sum, sums.Cf_sum,
+                              sums.Cw_sum, sums.C_prev, sums._acc, float(t_cov), float(cov_step_s), bool(scale_sums),
+                              q_out)  # fmt: skip
+        if n < 0:
+            k = -n - 1
+            raise InputError(f"strapdown step at t={float(t[k])!r}: time must increase (last t={self._s[0]!r})")
+        if n:
+            self._hold = float(holds[n - 1])
+        return n
 
     @property
     def t(self) -> float:
@@ -742,6 +884,23 @@ class SampleMeans:
             raise InputError("SampleMeans: an increment needs the previous sample's time (strictly earlier)")
         dt = float(t) - prev[0]
         return a / dt, b / dt
+
+    def means_batch(self, t: FloatArray, a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """:meth:`means` of each of the samples ``t`` (m,), ``a``, ``b`` (m,3) in turn (the same numbers,
+        vectorised; :func:`interval_means` with the previous sample)."""
+        t = np.asarray(t, dtype=float)
+        a = np.asarray(a, dtype=float).reshape(-1, 3)
+        b = np.asarray(b, dtype=float).reshape(-1, 3)
+        if len(t) == 0:
+            return a, b
+        prev = self._prev
+        if self.sample_type == "increment" and prev is None:
+            self.means(float(t[0]), a[0], b[0])  # raises: no interval for the first increment
+        if self.sample_type == "instantaneous" and prev is None:
+            prev = (float(t[0]), a[0], b[0])  # the first sample is its own mean
+        out = interval_means(t, a, b, self.sample_type, previous=prev)
+        self._prev = (float(t[-1]), a[-1].copy(), b[-1].copy())
+        return out
 
 
 def set_threads(n: int) -> None:  # pragma: no cover - thin convenience

@@ -86,7 +86,7 @@ from .link import (
     PressureMessage,
     TimesyncMessage,
 )
-from .online import AUTO_SAMPLE_TYPE
+from .online import AUTO_SAMPLE_TYPE, MAX_GAP_S
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +146,7 @@ class BridgeConfig:
     max_sigma_m: float = 100.0
     alert_limit_m: float | None = None  # HPL limit; default max_sigma_m * HPL_PER_SIGMA
     trust_hysteresis: float = 0.8
-    max_gap_s: float = 0.5
+    max_gap_s: float = MAX_GAP_S
     reboot_backstep_s: float = 1.0
     stale_imu_s: float = 0.5
     link_timeout_s: float = 3.0

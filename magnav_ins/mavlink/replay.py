@@ -36,10 +36,10 @@ from numpy.typing import NDArray
 
 from ..core.errors import ConfigError, InputError
 from ..core.frames import horizontal_error_m, q_nb_from_euler
-from ..core.types import Fix, ImuBatch, Innovation, NavState
+from ..core.types import Fix, ImuBatch, Innovation, NavState, NavTrajectory
 from ..core.units import NT_PER_GAUSS
 from .baro import BaroHeight, hold_height
-from .online import make_online_pipeline
+from .online import MAX_GAP_S, make_online_pipeline
 
 __all__ = ["LogRecording", "ReplayResult", "make_online_pipeline", "read_log", "replay", "write_trajectory"]
 
@@ -132,13 +132,14 @@ def _check_series(path: Path, what: str, t: FloatArray, values: dict[str, FloatA
         bad = ~np.isfinite(np.asarray(v, float).reshape(len(t), -1)).all(axis=1)
         if bad.any():
             k = int(np.argmax(bad))
-            raise InputError(f"{path}: {what} row {k + 1} (t={t[k]!r} s): non-finite {name} {np.asarray(v)[k]!r}")
+            bad_v = np.asarray(v, float)[k]
+            raise InputError(f"{path}: {what} row {k + 1} (t={float(t[k])} s): non-finite {name} {bad_v.tolist()}")
     d = np.diff(t)
     bad = d <= 0 if strict else d < 0
     if bad.any():
         k = int(np.argmax(bad)) + 1
         raise InputError(
-            f"{path}: {what} row {k + 1}: time goes backwards or repeats: t={t[k]!r} s after t={t[k - 1]!r} s"
+            f"{path}: {what} row {k + 1}: time goes backwards or repeats: t={float(t[k])} s after t={float(t[k - 1])} s"
         )
 
 
@@ -335,7 +336,7 @@ def _read_csv(p: Path) -> LogRecording:
         bad = ~np.isfinite(a[:, j])
         if bad.any():
             k = int(np.argmax(bad))
-            raise InputError(f"{p}: row {k + 1} column {c!r}: non-finite value {a[k, j]!r}")
+            raise InputError(f"{p}: row {k + 1} column {c!r}: non-finite value {float(a[k, j])}")
     _check_series(p, "CSV", a[:, 0], {}, strict=True)
     imu = ImuBatch(a[:, 0], a[:, 1:4], a[:, 4:7])
     mag_t = a[:, 0] if has_mag else np.zeros(0)
@@ -359,12 +360,14 @@ def _read_csv(p: Path) -> LogRecording:
 # ------------------------------------------------------------------------------------------------ replay
 @dataclass(frozen=True)
 class ReplayResult:
-    """What a replay produced: output ``t`` (N,) s, ``nav`` states, ``sigma_ne`` (N,2) m, every fix (also "no
-    fix") and innovation, counts, and when the log has GNSS the horizontal error (N,) m against it at the output
-    times inside the GNSS span (nan elsewhere)."""
+    """What a replay produced: output ``t`` (N,) s, the estimated ``trajectory`` at those times, ``sigma_ne`` (N,2)
+    m, every fix (also "no fix") and innovation, counts, and when the log has GNSS the horizontal error (N,) m
+    against it at the output times inside the GNSS span (nan elsewhere); ``gaps``: the IMU gaps longer than
+    ``max_gap_s`` after which the INS restarted (row, times, gap s, the grown position sigma m) and
+    ``readings_dropped_in_gaps``."""
 
     t: FloatArray
-    navs: list[NavState]
+    trajectory: NavTrajectory
     sigma_ne: FloatArray
     fixes: list[Fix]
     innovations: list[Innovation]
@@ -376,6 +379,15 @@ class ReplayResult:
     error_m: FloatArray | None = None
     baro: dict[str, Any] | None = None
     hpl_m: FloatArray | None = None  # (N,) the fuser's horizontal protection level, m (NaN: none)
+    gaps: tuple[dict[str, Any], ...] = ()
+    max_gap_s: float = MAX_GAP_S
+    readings_dropped_in_gaps: int = 0
+    notes: tuple[str, ...] = ()
+
+    @property
+    def navs(self) -> list[NavState]:
+        """The estimates as :class:`NavState` objects (built on demand)."""
+        return [self.trajectory.at(k) for k in range(len(self.trajectory))]
 
     def summary(self) -> dict[str, Any]:
         """Counts, fix statistics and (with GNSS) horizontal error figures, for the stdout summary and JSON."""
@@ -396,6 +408,17 @@ class ReplayResult:
         }
         if self.baro is not None:
             out["baro"] = dict(self.baro)
+        if self.notes:
+            out["notes"] = list(self.notes)
+        if self.gaps:
+            longest = max(self.gaps, key=lambda g: g["gap_s"])
+            out["imu_gaps"] = {
+                "count": len(self.gaps),
+                "max_gap_s": self.max_gap_s,
+                "longest": dict(longest),
+                "readings_dropped": self.readings_dropped_in_gaps,
+                "restarts": [dict(g) for g in self.gaps[:20]],
+            }
         if self.error_m is not None and np.isfinite(self.error_m).any():
             e = self.error_m[np.isfinite(self.error_m)]
             out["gnss_error_m"] = {
@@ -459,6 +482,11 @@ def initial_state(
         if rec.gnss is not None and abs(rec.gnss.t[_nearest(rec.gnss.t, t0)] - t0) < 1.0:
             v_n = rec.gnss.v_n[_nearest(rec.gnss.t, t0)]
         return NavState(t0, lat, lon, h, v_n, q_nb_from_euler(roll, pitch, yaw)), k0, source
+    if rec.fmt == "csv":
+        raise ConfigError(
+            f"{rec.path}: a CSV recording holds no GNSS position or attitude to start from: add --init "
+            "LAT_DEG,LON_DEG,ALT_M,YAW_DEG"
+        )
     missing = []
     if rec.gnss is None:
         missing.append(f"no GNSS position ({'vehicle_gps_position' if rec.fmt == 'ulog' else 'GLOBAL_POSITION_INT'})")
@@ -483,6 +511,49 @@ def initial_state(
     return NavState(t0, lat, lon, h, v_n, q), k0, f"log ({rec.sources['gnss']} + {rec.sources['attitude']})"
 
 
+class _Outputs:
+    """The recorded estimates as one growing array (rows :data:`_OUT_COLUMNS`), not an object per output."""
+
+    def __init__(self, capacity: int) -> None:
+        self.a = np.empty((max(int(capacity), 16), len(_OUT_COLUMNS)))
+        self.n = 0
+
+    def add(self, est: Any) -> None:
+        if self.n == len(self.a):
+            self.a = np.concatenate([self.a, np.empty_like(self.a)])
+        nav = est.nav
+        P = np.asarray(est.P)
+        row = self.a[self.n]
+        row[0:4] = nav.t, nav.lat, nav.lon, nav.h
+        row[4:7] = nav.v_n
+        row[7:11] = nav.q_nb
+        row[11] = math.sqrt(max(P[0, 0], 0.0))
+        row[12] = math.sqrt(max(P[1, 1], 0.0))
+        row[13] = float(est.hpl_m)
+        self.n += 1
+
+    @property
+    def last_t(self) -> float:
+        return float(self.a[self.n - 1, 0])
+
+    def done(self) -> FloatArray:
+        return self.a[: self.n].copy()
+
+
+#: columns of :class:`_Outputs`: t, lat, lon, h, v_n (3), q_nb (4), sigma_n, sigma_e, hpl
+_OUT_COLUMNS = ("t", "lat", "lon", "h", "vn", "ve", "vd", "qx", "qy", "qz", "qw", "sigma_n", "sigma_e", "hpl")
+
+
+def _gap_message(rec: LogRecording, k: int, t: FloatArray, max_gap_s: float) -> str:
+    what = {"ulog": f"topic '{rec.sources.get('imu', '')}' ", "tlog": f"message {rec.sources.get('imu', '')} "}.get(
+        rec.fmt, ""
+    )
+    return (
+        f"{rec.path}: {what}row {k + 1}: IMU gap of {t[k] - t[k - 1]:.6g} s (t={t[k - 1]:.6f} -> {t[k]:.6f} s) is "
+        f"longer than --max-gap {max_gap_s:g} s"
+    )
+
+
 def replay(
     rec: LogRecording,
     fmap: Any,
@@ -495,6 +566,9 @@ def replay(
     duration_s: float | None = None,
     pipeline_factory: Callable[[NavState, float], Any] | None = None,
     baro: bool = True,
+    max_gap_s: float = MAX_GAP_S,
+    on_gap: str = "restart",
+    progress: Callable[[int], None] | None = None,
     **pipeline_options: Any,
 ) -> ReplayResult:
     """Run the online pipeline over ``rec`` as the bridge would (module docstring).
@@ -508,11 +582,25 @@ def replay(
     :func:`make_online_pipeline` with ``fmap`` and ``pipeline_options``). ``baro``: when the log holds pressure,
     the INS height follows the barometric height as in the bridge (:class:`.baro.BaroHeight`, referenced to the
     pressure at the start; each IMU step ends at the baro height at its time); the result's ``baro`` holds its
-    counters."""
+    counters.
+
+    IMU gaps, as the bridge handles them: an interval up to ``max_gap_s`` (s) is integrated (bridged); after a
+    longer one (``on_gap="restart"``) the INS restarts at the sample after the gap from its last estimate, with
+    the position 1-sigma grown by speed x gap and the IMU biases estimated so far kept (readings inside the gap are
+    dropped; the result's ``gaps`` lists each restart); ``on_gap="stop"`` refuses such a log before replaying it
+    (:class:`InputError` naming the row and the times). Never integrated across.
+
+    The samples between events (a reading, an output, a gap) go to the pipeline in one call
+    (:meth:`.online.OnlinePipeline.push_imu_batch`: the same numbers as sample by sample, as the bridge feeds
+    them); ``progress(n)`` is called with the number of IMU samples done since its last call."""
     if not (reading_interval_s >= 0 and output_dt > 0):
         raise ConfigError(
             f"reading interval must be >= 0 and output interval > 0 s, got {reading_interval_s}, {output_dt}"
         )
+    if not (math.isfinite(max_gap_s) and max_gap_s > 0):
+        raise ConfigError(f"--max-gap must be a positive number of seconds, got {max_gap_s!r}")
+    if on_gap not in ("restart", "stop"):
+        raise ConfigError(f"--on-gap must be 'restart' or 'stop', got {on_gap!r}")
     nav0, k0, init_source = initial_state(rec, init)
     if pipeline_factory is None:
         options = dict(pipeline_options)
@@ -520,9 +608,11 @@ def replay(
             options["attitude_sigma_rad"] = (INIT_TILT_SIGMA_RAD if "levelled" in init_source else 0.005,) * 2 + (
                 INIT_YAW_SIGMA_RAD,
             )
-        pipe = make_online_pipeline(nav0, init_sigma_m, fmap, **options)
-    else:
-        pipe = pipeline_factory(nav0, init_sigma_m)
+
+        def pipeline_factory(nav: NavState, sigma: float) -> Any:
+            return make_online_pipeline(nav, sigma, fmap, **options)
+
+    pipe = pipeline_factory(nav0, init_sigma_m)
     imu = rec.imu
     k_end = len(imu)
     if duration_s is not None:
@@ -530,33 +620,54 @@ def replay(
             raise ConfigError(f"--duration must be > 0 s, got {duration_s}")
         k_end = int(np.searchsorted(imu.t, imu.t[k0] + duration_s + _TOL, side="right"))
     t_all, gyro, accel = imu.t[:k_end], imu.gyro_b[:k_end], imu.accel_b[:k_end]
+    n = len(t_all)
+    gap_at = k0 + 1 + np.flatnonzero(np.diff(t_all[k0:]) > max_gap_s)
+    if on_gap == "stop" and len(gap_at):
+        raise InputError(
+            _gap_message(rec, int(gap_at[0]), t_all, max_gap_s) + ": the replay would integrate across it "
+            "(--on-gap restart restarts the INS from its last estimate instead)"
+        )
     mag_t, mag = rec.mag_t, rec.mag_b_nt
     j = int(np.searchsorted(mag_t, t_all[k0], side="right"))
     last_reading = -math.inf
     n_readings = 0
-    out_t: list[float] = []
-    navs: list[NavState] = []
-    sig: list[tuple[float, float]] = []
-    hpl: list[float] = []
+    outs = _Outputs(int((t_all[-1] - t_all[k0]) / output_dt) + 4)
+    fixes: list[Fix] = []
+    innovations: list[Innovation] = []
+    gaps: list[dict[str, Any]] = []
+    dropped_in_gaps = 0
+
+    last_nav = nav0
 
     def record() -> None:
+        nonlocal last_nav
         est = pipe.estimate()
-        P = np.asarray(est.P)
-        hpl.append(float(est.hpl_m))
-        out_t.append(est.nav.t)
-        navs.append(est.nav)
-        sig.append((math.sqrt(max(P[0, 0], 0.0)), math.sqrt(max(P[1, 1], 0.0))))
+        outs.add(est)
+        last_nav = est.nav
 
     def reading(k_mag: int) -> None:
         nonlocal last_reading, n_readings
         tm = float(mag_t[k_mag])
-        if field_model is None or tm - last_reading < reading_interval_s - _TOL:
+        if not takes_readings or tm - last_reading < reading_interval_s - _TOL:
             return
-        value = field_model(mag[k_mag], navs[-1])
+        value = field_model(mag[k_mag], last_nav)
         if value is not None and np.all(np.isfinite(value)):
             pipe.push_reading(tm, value)
             last_reading = tm
             n_readings += 1
+
+    def next_reading() -> tuple[int, bool]:
+        """The IMU sample at which the next magnetometer sample that may give a reading is handled (n: none), and
+        whether it falls strictly inside that sample's interval (then it is queued before the sample)."""
+        if not takes_readings:
+            return n, False
+        jc = max(j, int(np.searchsorted(mag_t, last_reading + reading_interval_s - 2 * _TOL, side="left")))
+        while jc < len(mag_t) and float(mag_t[jc]) - last_reading < reading_interval_s - _TOL:
+            jc += 1
+        if jc >= len(mag_t):
+            return n, False
+        kr = int(np.searchsorted(t_all, mag_t[jc] - _TOL, side="left"))
+        return kr, kr < n and float(mag_t[jc]) < float(t_all[kr]) - _TOL
 
     baro_t, baro_pa = rec.baro_t, rec.baro_pa
     bh: BaroHeight | None = None
@@ -569,59 +680,140 @@ def replay(
             bh.push(float(baro_t[i]), float(baro_pa[i]))
         bh.set_reference(nav0.h, float(t_all[k0]))
 
+    def baro_height(t: float) -> float | None:
+        """Feed the barometer up to ``t`` and return its height there (None: none yet, or not used)."""
+        nonlocal jb, bh
+        if bh is None:
+            return None
+        while jb < len(baro_t) and baro_t[jb] <= t + _TOL:
+            bh.push(float(baro_t[jb]), float(baro_pa[jb]))
+            jb += 1
+        h_baro = bh.height(t)
+        if h_baro is not None and not baro_applied and not getattr(pipe.fuser, "holds_altitude", False):
+            bh = None  # this pipeline holds no altitude (graph fusion, altitude_hold=False)
+            log.warning("barometer in the log not used: the pipeline holds no altitude")
+            return None
+        return h_baro
+
+    def restart(k: int) -> None:
+        """After the gap ending at sample ``k``: a new pipeline at ``t[k]`` from the last estimate (as the bridge)."""
+        nonlocal pipe, j, dropped_in_gaps
+        est = pipe.estimate()
+        gap = float(t_all[k] - t_all[k - 1])
+        speed = float(np.hypot(est.nav.v_n[0], est.nav.v_n[1]))
+        sigma = math.sqrt(max(float(np.trace(np.asarray(est.cov_ne))) / 2.0, 0.0)) + speed * gap
+        bias = pipe.imu_bias if hasattr(pipe, "imu_bias") else None
+        fixes.extend(pipe.fixes)
+        innovations.extend(pipe.innovations)
+        nav = est.nav
+        pipe = pipeline_factory(NavState(float(t_all[k]), nav.lat, nav.lon, nav.h, nav.v_n, nav.q_nb), sigma)
+        if bias is not None and hasattr(pipe, "set_static_bias"):
+            pipe.set_static_bias(*bias)
+        j_after = int(np.searchsorted(mag_t, t_all[k] - _TOL, side="left"))
+        dropped_in_gaps += max(0, j_after - j)
+        j = max(j, j_after)
+        gaps.append({"row": k + 1, "t_before": float(t_all[k - 1]), "t_after": float(t_all[k]), "gap_s": gap,
+                     "sigma_m": sigma})  # fmt: skip
+        log.warning(
+            "%s: INS restarted from the last estimate, position sigma now %.0f m",
+            _gap_message(rec, k, t_all, max_gap_s),
+            sigma,
+        )
+
+    # a pipeline without a matcher (free inertial) takes no readings: evaluating them would only cost time
+    takes_readings = field_model is not None and getattr(pipe, "matcher", True) is not None
     record()
     t_next = t_all[k0] + output_dt
-    for k in range(k0 + 1, len(t_all)):
-        t = float(t_all[k])
-        if bh is not None:
-            while jb < len(baro_t) and baro_t[jb] <= t + _TOL:
-                bh.push(float(baro_t[jb]), float(baro_pa[jb]))
-                jb += 1
-            h_baro = bh.height(t)
-            if h_baro is not None:
-                if hold_height(pipe, h_baro):
+    ig = 0
+    k = k0 + 1
+    while k < n:
+        # the next sample that needs handling: a gap, an output, a reading; the samples before it, and the sample
+        # itself unless it ends a gap or a reading falls inside its interval, go to the pipeline in one call
+        e_gap = int(gap_at[ig]) if ig < len(gap_at) else n
+        e_read, inside = next_reading()
+        e = min(e_gap, max(k, int(np.searchsorted(t_all, t_next - _TOL, side="left"))), max(k, e_read))
+        alone = e >= n or e == e_gap or (e == e_read and inside)
+        b = e if alone else e + 1
+        if b > k:
+            holds = None
+            if bh is not None:
+                hs = [baro_height(float(t)) for t in t_all[k:b]]
+                if bh is not None and any(h is not None for h in hs):
+                    cur = getattr(pipe.fuser, "altitude_hold_m", None)
+                    holds = np.empty(b - k)
+                    for i, h in enumerate(hs):
+                        cur = h if h is not None else cur
+                        holds[i] = cur
                     baro_applied = True
-                elif not baro_applied:
-                    bh = None  # this pipeline holds no altitude (graph fusion, altitude_hold=False)
-                    log.warning("barometer in the log not used: the pipeline holds no altitude")
-        while j < len(mag_t) and mag_t[j] < t - _TOL:  # strictly inside the sample: queued, applied at its time
-            reading(j)
-            j += 1
-        pipe.push_imu(t, gyro[k], accel[k])
+            pipe.push_imu_batch(t_all[k:b], gyro[k:b], accel[k:b], altitude_hold=holds)
+            j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] - _TOL, side="left")))
+            if progress is not None:
+                progress(b - k)
+            if b >= n:
+                break
+        k = e
+        t = float(t_all[k])
+        if not alone:
+            pass  # pushed with the run above
+        elif ig < len(gap_at) and gap_at[ig] == k:
+            ig += 1
+            baro_height(t)  # keep the barometer fed; the new pipeline holds the estimate's height
+            restart(k)
+        else:
+            h_baro = baro_height(t)
+            if h_baro is not None and hold_height(pipe, h_baro):
+                baro_applied = True
+            while j < len(mag_t) and mag_t[j] < t - _TOL:  # strictly inside the sample: queued, applied at its time
+                reading(j)
+                j += 1
+            pipe.push_imu(t, gyro[k], accel[k])
         while j < len(mag_t) and mag_t[j] <= t + _TOL:  # at the sample time (the bridge's case)
             reading(j)
             j += 1
         if t >= t_next - _TOL:
             record()
             t_next += output_dt * max(1.0, math.floor((t - t_next) / output_dt + _TOL) + 1.0)
-    if out_t[-1] < t_all[-1] - _TOL:
+        if progress is not None and alone:
+            progress(1)
+        k += 1
+    if outs.last_t < t_all[-1] - _TOL:
         record()
-    t_out = np.asarray(out_t)
+    fixes.extend(pipe.fixes)
+    innovations.extend(pipe.innovations)
+    out = outs.done()
+    t_out = out[:, 0]
+    traj = NavTrajectory(t_out, out[:, 1], out[:, 2], out[:, 3], out[:, 4:7], out[:, 7:11])
     err = None
     if rec.gnss is not None:
         g = rec.gnss
         inside = (t_out >= g.t[0] - _TOL) & (t_out <= g.t[-1] + _TOL)
         lat_ref = np.interp(t_out, g.t, g.lat)
         lon_ref = np.interp(t_out, g.t, np.unwrap(g.lon))
-        e = horizontal_error_m(np.array([n.lat for n in navs]), np.array([n.lon for n in navs]), lat_ref, lon_ref)
-        err = np.where(inside, e, np.nan)
+        e_m = horizontal_error_m(traj.lat, traj.lon, lat_ref, lon_ref)
+        err = np.where(inside, e_m, np.nan)
     covers = True
     if fmap is not None and hasattr(fmap, "covers"):
         covers = bool(np.asarray(fmap.covers(nav0.lat, nav0.lon)).reshape(-1)[0])
     return ReplayResult(
         t_out,
-        navs,
-        np.asarray(sig, float).reshape(-1, 2),
-        list(pipe.fixes),
-        list(pipe.innovations),
-        len(t_all) - k0 - 1,
+        traj,
+        out[:, 11:13].copy(),
+        fixes,
+        innovations,
+        n - k0 - 1,
         n_readings,
         float(t_all[-1] - t_all[k0]),
         init_source,
         covers,
         err,
         _baro_summary(rec, baro_applied, bh),
-        np.asarray(hpl, float),
+        out[:, 13].copy(),
+        tuple(gaps),
+        max_gap_s,
+        dropped_in_gaps,
+        ()
+        if takes_readings or field_model is None
+        else ("the pipeline has no matcher (free inertial): no readings taken",),
     )
 
 
@@ -639,15 +831,14 @@ def write_trajectory(path: str | Path, result: ReplayResult) -> None:
     from ..core.atomic import atomic_path
     from ..core.frames import euler_from_q_nb
 
-    navs = result.navs
-    q = np.array([n.q_nb for n in navs]).reshape(-1, 4)
-    roll, pitch, yaw = (np.degrees(np.asarray(x, float)) for x in euler_from_q_nb(q))
+    tr = result.trajectory
+    roll, pitch, yaw = (np.degrees(np.asarray(x, float)) for x in euler_from_q_nb(tr.q_nb.reshape(-1, 4)))
     cols = [
         result.t,
-        np.degrees([n.lat for n in navs]),
-        np.degrees([n.lon for n in navs]),
-        np.array([n.h for n in navs]),
-        *np.array([n.v_n for n in navs]).reshape(-1, 3).T,
+        np.degrees(tr.lat),
+        np.degrees(tr.lon),
+        tr.h,
+        *tr.v_n.reshape(-1, 3).T,
         roll,
         pitch,
         yaw,

@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike
 
 from ...core.types import Fix, Innovation
 from ..gating import ChiSquareGate, nis
-from .common import _HELD, fix_problem, residual_ne, symmetrise
+from .common import _HELD, Samples, fix_problem, residual_ne, symmetrise
 
 
 def _reject(fixes: Sequence[Fix], reason: str, y=None, S=None, v: float = float("nan")) -> Innovation:  # noqa: ANN001
@@ -40,18 +40,10 @@ def _reject(fixes: Sequence[Fix], reason: str, y=None, S=None, v: float = float(
     return Innovation(t, r, s, float(v), False, reason, src, {"batch": float(len(fixes))})
 
 
-def _step_to(core, samples: list, t_target: float) -> list:  # noqa: ANN001
-    """Step ``core`` through ``samples`` up to ``t_target`` (cutting the straddling sample, as ``_rewind`` does);
-    returns the samples still to replay."""
-    for k, (t, w, f) in enumerate(samples):
-        if t <= t_target + 1e-9:
-            core._samples.append((t, w, f))
-            core._step(t, w, f)
-        else:
-            if core.t < t_target - 1e-9:
-                core._step(t_target, w, f)
-            return samples[k:]
-    return []
+def _step_to(core, samples, t_target: float):  # noqa: ANN001, ANN202
+    """Step ``core`` through ``samples`` (:class:`.common.Samples`) up to ``t_target`` (cutting the straddling
+    sample, as ``_rewind`` does); returns the samples still to replay."""
+    return core._step_until(samples, t_target)
 
 
 def correct_batch(core, fixes: Sequence[Fix], cov: ArrayLike, gate_probability: float | None) -> Innovation:  # noqa: ANN001
@@ -79,7 +71,7 @@ def correct_batch(core, fixes: Sequence[Fix], cov: ArrayLike, gate_probability: 
         return _reject(fixes, "batch fixes must be in time order")
     if ts[-1] > core.t + 1e-6:
         return _reject(fixes, f"fix time {ts[-1]:.6f} s is after the last IMU time {core.t:.6f} s")
-    rest: list = []
+    rest = Samples.empty()
     if ts[0] < core.t - 1e-6:
         r = core._rewind(float(ts[0]))
         if r is None:

@@ -281,6 +281,21 @@ def rejected(fix: Fix, reason: str, residual: ArrayLike | None = None, S: ArrayL
     return Innovation(float(fix.t), r, s, float(nis), False, reason, fix.source)
 
 
+def _positive_definite_where_live(C: FloatArray, live: NDArray[np.bool_]) -> bool:
+    """True when the states with a positive variance (``live``) form a positive definite block (its Cholesky
+    factor exists) and the others are exactly uncorrelated zeros: then every eigenvalue is >= 0."""
+    if not live.all():
+        dead = ~live
+        if np.any(C[dead, :]) or np.any(C[:, dead]):
+            return False
+        C = C[np.ix_(live, live)]
+    try:
+        np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return False
+    return True
+
+
 def symmetrise(P: ArrayLike, floor: float = 0.0) -> FloatArray:
     """``(P + P^T)/2`` with eigenvalues clipped at ``floor`` (keeps a covariance symmetric PSD/PD).
 
@@ -294,6 +309,8 @@ def symmetrise(P: ArrayLike, floor: float = 0.0) -> FloatArray:
         d = np.diag(P)
         sd = np.sqrt(np.where(d > 0, d, 1.0))
         C = P / np.outer(sd, sd)
+        if _positive_definite_where_live(C, d > 0):  # the common case, without the eigen-decomposition
+            return P
         w, V = np.linalg.eigh(C)
         if w.min() >= 0.0:
             return P
@@ -355,6 +372,16 @@ def discretize_fast(F: FloatArray, G: FloatArray, Qc: FloatArray, dt: float) -> 
     return Phi, 0.5 * (Qd + Qd.T)
 
 
+def _constants(noise: ImuNoise) -> tuple[float, float, FloatArray]:
+    """:func:`.cov_step.noise_constants` (memoised for the immutable :class:`ImuNoise`)."""
+    from .cov_step import noise_constants, noise_constants_cached
+
+    try:
+        return noise_constants_cached(noise)
+    except TypeError:  # not hashable (an ImuGrade)
+        return noise_constants(noise)
+
+
 def step_matrices(
     nav: NavState,
     C_sum: FloatArray,
@@ -375,6 +402,10 @@ def step_matrices(
     ``Cf_sum`` = int C_nb diag(f_b) dt and ``Cw_sum`` = int C_nb diag(omega_ib_b) dt."""
     from ...ins.error_model import system_matrices
 
+    if extra is None or extra.layout.size == 15:  # the compiled twin of the code below (cov_step.py)
+        from .cov_step import step_matrices_15
+
+        return step_matrices_15(nav.lat, nav.h, nav.v_n, _dcm(nav.q_nb), C_sum, fn_sum, sum_dt, dt, _constants(noise))
     F, G, Qc = system_matrices(nav.lat, nav.h, nav.v_n, _dcm(nav.q_nb), np.zeros(3), noise)
     if sum_dt > 0:
         C_mean = C_sum / sum_dt
@@ -412,6 +443,69 @@ def _clamped(nav: NavState, h_m: float) -> NavState:
     v = np.array(nav.v_n, dtype=float)
     v[2] = 0.0
     return NavState(nav.t, nav.lat, nav.lon, float(h_m), v, nav.q_nb)
+
+
+class Samples:
+    """IMU samples as arrays: ``t`` (m,) s, ``w`` gyro rad/s, ``f`` specific force m/s^2 (m,3), body FRD (raw:
+    before the fuser's bias correction)."""
+
+    __slots__ = ("t", "w", "f")
+
+    def __init__(self, t: FloatArray, w: FloatArray, f: FloatArray) -> None:
+        self.t, self.w, self.f = t, w, f
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def __getitem__(self, k: slice) -> Samples:
+        return Samples(self.t[k], self.w[k], self.f[k])
+
+    @staticmethod
+    def empty() -> Samples:
+        return Samples(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+class _SampleBuffer:
+    """The raw samples since the oldest checkpoint (growable arrays; appends, front drops and a cut at an index
+    without a Python object per sample)."""
+
+    def __init__(self, capacity: int = 1024) -> None:
+        self._t = np.empty(capacity)
+        self._w = np.empty((capacity, 3))
+        self._f = np.empty((capacity, 3))
+        self._start = 0
+        self._end = 0
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    def extend(self, x: Samples) -> None:
+        m = len(x)
+        if self._end + m > len(self._t):
+            n = len(self)
+            cap = max(2 * (n + m), 1024)
+            if cap > len(self._t) or self._start > 0:
+                t, w, f = np.empty(cap), np.empty((cap, 3)), np.empty((cap, 3))
+                t[:n], w[:n], f[:n] = (
+                    self._t[self._start : self._end],
+                    self._w[self._start : self._end],
+                    self._f[self._start : self._end],
+                )
+                self._t, self._w, self._f = t, w, f
+                self._start, self._end = 0, n
+        e = self._end
+        self._t[e : e + m], self._w[e : e + m], self._f[e : e + m] = x.t, x.w, x.f
+        self._end = e + m
+
+    def drop_front(self, n: int) -> None:
+        self._start += min(int(n), len(self))
+
+    def cut(self, i: int) -> Samples:
+        """Remove and return the samples from position ``i`` on (copies)."""
+        a = self._start + int(i)
+        out = Samples(self._t[a : self._end].copy(), self._w[a : self._end].copy(), self._f[a : self._end].copy())
+        self._end = max(a, self._start)
+        return out
 
 
 class InertialCore:
@@ -452,7 +546,7 @@ class InertialCore:
         map_bias_sources: tuple[str, ...] | None = None,
         integrity_risk: float = DEFAULT_INTEGRITY_RISK,
     ) -> None:
-        from ...ins.strapdown import StrapdownStepper
+        from ...ins.strapdown import AttitudeSums, StrapdownStepper
         from .integrity import FaultMonitor
 
         self.extra = ExtraStates.from_options(
@@ -478,9 +572,10 @@ class InertialCore:
         self._init_nav = init.nav
         self._P0 = symmetrise(P0, 0.0)
         self._altitude_hold = altitude_hold
-        self._raw: list[tuple[float, FloatArray, FloatArray]] = []  # every sample once (keep_history only)
+        self._raw: list[Samples] = []  # every sample once, in chunks (keep_history only)
         self._fix_log: list[tuple] = []  # accepted fixes (keep_history only): (t, fix, height_m, height_sigma_m)
         self._stepper = StrapdownStepper(init.nav, altitude_hold=altitude_hold)
+        self._sums = AttitudeSums()
         self._P = symmetrise(P0, 0.0)
         self._b_a = np.zeros(3)
         self._b_g = np.zeros(3)
@@ -489,7 +584,7 @@ class InertialCore:
         self._b_map = np.zeros(2)  # map-bias estimate, north/east m (with extra.map_bias_sigma_m only)
         self._t_cov = float(init.nav.t)
         self._clear_step_sums()
-        self._samples: list[tuple[float, FloatArray, FloatArray]] = []
+        self._samples = _SampleBuffer()
         self._n_dropped = 0  # samples dropped from the front of the buffer
         self._checkpoints: list[tuple] = []
         self._checkpoint()
@@ -571,18 +666,14 @@ class InertialCore:
             self._checkpoints.pop(0)
         drop = self._checkpoints[0][4] - self._n_dropped
         if drop > 0:
-            del self._samples[:drop]
+            self._samples.drop_front(drop)
             self._n_dropped += drop
 
     def _clear_step_sums(self) -> None:
         """Start a covariance step: integrals of ``C_nb`` and ``C_nb f_b`` (navigation-frame specific force) over
-        it, and its length; the attitude at the step start is re-read from the INS (it may have been corrected)."""
-        self._C_sum = np.zeros((3, 3))
-        self._fn_sum = np.zeros(3)
-        self._Cf_sum = np.zeros((3, 3))  # int C_nb diag(f_b) dt, int C_nb diag(omega_ib_b) dt (scale-factor columns)
-        self._Cw_sum = np.zeros((3, 3))
-        self._f_dt = 0.0
-        self._C_prev: FloatArray | None = None
+        it (with scale factors also ``C_nb diag(f_b)`` and ``C_nb diag(omega_ib_b)``), and its length; the attitude
+        at the step start is re-read from the INS (it may have been corrected). :class:`ins.strapdown.AttitudeSums`."""
+        self._sums.clear()
 
     def _predict_cov(self, Phi: FloatArray, Qd: FloatArray) -> None:
         self._P = symmetrise(Phi @ self._P @ Phi.T + Qd, 0.0)
@@ -592,8 +683,9 @@ class InertialCore:
         dt = self.t - self._t_cov
         if dt <= 0.0:
             return
-        Phi, Qd = step_matrices(self._stepper.nav, self._C_sum, self._fn_sum, self._f_dt, dt, self.noise, self.extra,
-                                self._Cf_sum, self._Cw_sum)  # fmt: skip
+        sm = self._sums
+        Phi, Qd = step_matrices(self._stepper.nav, sm.C_sum, sm.fn_sum, sm.dt_sum, dt, self.noise, self.extra,
+                                sm.Cf_sum, sm.Cw_sum)  # fmt: skip
         held = np.diag(self._P)[list(_HELD)].copy() if self._altitude_hold is not None else None
         self._predict_cov(Phi, Qd)
         if held is not None:  # the INS holds the altitude: no down error growth (the unstable vertical channel,
@@ -610,27 +702,44 @@ class InertialCore:
         self._clear_step_sums()
         self._checkpoint()
 
-    def _step(self, t: float, w: FloatArray, f: FloatArray) -> None:
-        dt = t - self.t
+    def _run(
+        self, x: Samples, holds: FloatArray | None = None, q_out: FloatArray | None = None, *, buffer: bool = True
+    ) -> None:
+        """Mechanise the raw samples ``x`` (after the current time, finite), with a covariance step wherever one
+        ends (``cov_step_s``): bias (and scale-factor) correction, then the compiled stepper with the attitude
+        integrals (:meth:`ins.strapdown.StrapdownStepper.run_with_sums`; the same numbers sample by sample or in
+        one call). ``holds`` (m,): the altitude hold of each sample (default: the current one); ``q_out`` (m,4):
+        the attitude after each sample; ``buffer``: keep the samples for a rewind (not the first part of a cut
+        sample)."""
+        m = len(x)
+        if m == 0:
+            return
         if self.extra.scale_factors:
-            w_c, f_c = self._corrected(w, f, self._aux())
+            w_c, f_c = self._corrected(x.w, x.f, self._aux())
         else:
-            w_c, f_c = w - self._b_g, f - self._b_a
-        C0 = self._C_prev if self._C_prev is not None else _dcm(self._stepper.nav.q_nb)
-        self._stepper.step_rate(t, w_c, f_c)
-        C1 = _dcm(self._stepper.nav.q_nb)
-        C_mid = 0.5 * (C0 + C1)  # attitude over the sample (trapezoid)
-        self._C_prev = C1
-        self._C_sum += C_mid * dt
-        self._fn_sum += C_mid @ f_c * dt
-        if self.extra.scale_factors:
-            self._Cf_sum += C_mid * f_c * dt  # C diag(f): column j scaled by f_j
-            self._Cw_sum += C_mid * w_c * dt
-        self._f_dt += dt
-        if t - self._t_cov >= self.cov_step_s - 1e-9:
-            self._advance_cov()
+            w_c, f_c = x.w - self._b_g, x.f - self._b_a
+        if q_out is None:
+            q_out = np.empty((m, 4))
+        i = 0
+        while i < m:  # a covariance step changes no estimate used in the correction
+            n = self._stepper.run_with_sums(
+                x.t[i:], w_c[i:], f_c[i:], self._sums, holds=None if holds is None else holds[i:],
+                t_cov=self._t_cov, cov_step_s=self.cov_step_s, scale_sums=self.extra.scale_factors, q_out=q_out[i:],
+            )  # fmt: skip
+            if buffer:
+                self._samples.extend(x[i : i + n])
+            i += n
+            if i < m or x.t[m - 1] - self._t_cov >= self.cov_step_s - 1e-9:
+                self._advance_cov()
 
-    def _rewind(self, t_past: float) -> list[tuple[float, FloatArray, FloatArray]] | None:
+    def _step(self, t: float, w: FloatArray, f: FloatArray) -> None:
+        """One raw sample ending at ``t`` (:meth:`_run`), not buffered."""
+        self._run(
+            Samples(np.array([float(t)]), np.asarray(w, float).reshape(1, 3), np.asarray(f, float).reshape(1, 3)),
+            buffer=False,
+        )
+
+    def _rewind(self, t_past: float) -> Samples | None:
         """Restore the last checkpoint at or before ``t_past`` and re-step the buffered samples up to ``t_past``
         (cutting the straddling one); returns the samples to replay after it, or None if ``t_past`` is older
         than the buffer."""
@@ -638,8 +747,7 @@ class InertialCore:
         if not cps:
             return None
         t_c, nav, P, aux, n_at = cps[-1]
-        samples = self._samples[n_at - self._n_dropped :]
-        del self._samples[n_at - self._n_dropped :]
+        samples = self._samples.cut(n_at - self._n_dropped)
         while self._checkpoints and self._checkpoints[-1][0] > t_c:
             self._checkpoints.pop()
         self._checkpoints.pop()  # re-created below
@@ -652,29 +760,30 @@ class InertialCore:
                 self._history.pop()
         self._clear_step_sums()
         self._checkpoint()
-        rest = []
-        for k, (t, w, f) in enumerate(samples):
-            if t <= t_past + 1e-9:
-                self._samples.append((t, w, f))
-                self._step(t, w, f)
-            else:
-                if self.t < t_past - 1e-9:
-                    self._step(t_past, w, f)  # the straddling sample, first part
-                rest = samples[k:]
-                break
+        return self._step_until(samples, t_past)
+
+    def _step_until(self, samples: Samples, t_target: float) -> Samples:
+        """Step through the samples at or before ``t_target``, then the first part of the straddling one (up to
+        ``t_target``); returns the samples still to replay (from the straddling one on)."""
+        k = int(np.searchsorted(samples.t, t_target + 1e-9, side="right"))
+        self._run(samples[:k])
+        rest = samples[k:]
+        if len(rest) and self.t < t_target - 1e-9:
+            self._step(t_target, rest.w[0], rest.f[0])  # the straddling sample, first part (buffered in full later)
         return rest
 
-    def _replay(self, samples: list[tuple[float, FloatArray, FloatArray]]) -> None:
-        for t, w, f in samples:
-            self._samples.append((t, w, f))
-            self._step(t, w, f)
+    def _replay(self, samples: Samples) -> None:
+        self._run(samples)
 
     # ------------------------------------------------------------------------------------------ Fuser API
-    def propagate(self, imu: ImuBatch) -> None:
+    def propagate(self, imu: ImuBatch, *, altitude_hold: FloatArray | None = None, attitudes: bool = False):
         """Mechanise IMU samples after the current time (rates over ``(t[k-1], t[k]]``, body FRD); samples at or
-        before it are skipped. Non-finite samples or non-increasing times raise :class:`InputError`."""
+        before it are skipped. Non-finite samples or non-increasing times raise :class:`InputError`.
+        ``altitude_hold`` (N,): the altitude hold (m) of each sample instead of the current one (as
+        :meth:`set_altitude_hold` before each; only for a fuser built with ``altitude_hold``); ``attitudes``:
+        return the INS attitude ``q_nb`` (M,4) after each sample mechanised (else None)."""
         if len(imu) == 0:
-            return
+            return np.zeros((0, 4)) if attitudes else None
         if not (np.all(np.isfinite(imu.gyro_b)) and np.all(np.isfinite(imu.accel_b)) and np.all(np.isfinite(imu.t))):
             raise InputError(f"{type(self).__name__}.propagate: IMU batch holds non-finite values")
         d = np.diff(imu.t)
@@ -682,18 +791,34 @@ class InertialCore:
             k = int(np.argmax(d <= 0)) + 1
             raise InputError(f"{type(self).__name__}.propagate: IMU time not increasing at sample {k}: t={imu.t[k]!r}")
         check_time(float(imu.t[-1]), self.t, f"{type(self).__name__}.propagate")
-        t_now = self.t
-        for k in np.flatnonzero(imu.t > t_now + 1e-9):
-            t, w, f = float(imu.t[k]), imu.gyro_b[k].copy(), imu.accel_b[k].copy()
-            self._samples.append((t, w, f))
-            if self._history is not None:
-                self._raw.append((t, w, f))
-            self._step(t, w, f)
+        k0 = int(np.searchsorted(imu.t, self.t + 1e-9, side="right"))
+        x = Samples(
+            np.asarray(imu.t[k0:], float), np.asarray(imu.gyro_b[k0:], float), np.asarray(imu.accel_b[k0:], float)
+        )
+        holds = None
+        if altitude_hold is not None:
+            if self._altitude_hold is None:
+                raise InputError("propagate: altitude_hold given to a fuser built without altitude_hold")
+            holds = np.asarray(altitude_hold, float)[k0:]
+            if len(holds) != len(x) or not np.all(np.isfinite(holds)):
+                raise InputError("propagate: altitude_hold must hold one finite height (m) per IMU sample")
+        if self._history is not None and len(x):
+            self._raw.append(Samples(x.t.copy(), x.w.copy(), x.f.copy()))
+        q_out = np.empty((len(x), 4))
+        self._run(x, holds, q_out)
+        if holds is not None and len(holds):
+            self._altitude_hold = float(holds[-1])
+        return q_out if attitudes else None
 
     @property
     def holds_altitude(self) -> bool:
         """True when the vertical channel is clamped (``altitude_hold`` given at construction)."""
         return self._altitude_hold is not None
+
+    @property
+    def altitude_hold_m(self) -> float | None:
+        """The height (m) the vertical channel is clamped to now (None: free)."""
+        return self._altitude_hold
 
     def set_altitude_hold(self, h_m: float) -> None:
         """Move the vertical-channel clamp to ``h_m`` (m above the ellipsoid) from the next IMU sample on: a height
@@ -847,7 +972,9 @@ class InertialCore:
         if holds is not None:
             nom = [_clamped(x, h) for x, h in zip(nom, holds, strict=True)]
         times = np.array([x.t for x in nom])
-        T = np.array([r[0] for r in self._raw]) if self._raw else np.zeros(0)
+        T = np.concatenate([r.t for r in self._raw]) if self._raw else np.zeros(0)
+        W = np.concatenate([r.w for r in self._raw]) if self._raw else np.zeros((0, 3))
+        Fr = np.concatenate([r.f for r in self._raw]) if self._raw else np.zeros((0, 3))
         fixes: dict[int, list] = {}
         for entry in self._fix_log:
             k = int(np.argmin(np.abs(times - entry[0])))
@@ -872,7 +999,7 @@ class InertialCore:
                     t_end = min(T[j], times[k])
                     dt = t_end - st.t
                     if dt > 1e-12:
-                        w_c, f_c = self._corrected(self._raw[j][1], self._raw[j][2], b)
+                        w_c, f_c = self._corrected(W[j], Fr[j], b)
                         st.step_rate(t_end, w_c, f_c)
                         C1 = _dcm(st.nav.q_nb)
                         C_mid = 0.5 * (C0 + C1)

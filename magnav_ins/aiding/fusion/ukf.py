@@ -57,7 +57,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from ...core.types import DEFAULT_INTEGRITY_RISK, Fix, Innovation, NavEstimate
 from ...ins.error_model import apply_error
 from ..gating import ChiSquareGate, nis
-from .common import ExtraStates, ImuNoise, InertialCore, fix_problem, rejected, residual_ne, symmetrise
+from .common import ExtraStates, ImuNoise, InertialCore, Samples, fix_problem, rejected, residual_ne, symmetrise
 from .integrity import (
     DEFAULT_RESET_AFTER,
     DEFAULT_WINDOW,
@@ -196,7 +196,7 @@ class UkfFuser(InertialCore):
             return rejected(fix, f"bad height aid: height_m={height_m}, height_sigma_m={height_sigma_m}")
         if fix.t > self.t + 1e-6:
             return rejected(fix, f"fix time {fix.t:.6f} s is after the last IMU time {self.t:.6f} s")
-        rest: list = []
+        rest = Samples.empty()
         if fix.t < self.t - 1e-6:
             r = self._rewind(float(fix.t))
             if r is None:
