@@ -29,6 +29,10 @@ fix is tried:
 * ``bayes_grid_body``: the Bayes grid on a map and readings in the levelled body frame: the heading-dependent
   field; a revisit walked in another direction reads differently (the mall's arms are walked out and back).
 
+Both matchers treat map nodes without values as "the field here is unknown" (``off_map = "unknown"``: the
+reading's likelihood under the map's own field statistics), so a walk that leaves the mapped path gets "no fix: off
+the map" instead of a fix on the map's edge; ``--off-map impossible`` restores the old behaviour.
+
 Figures per walk and method, over ``--seeds`` odometry draws: availability (fixes issued / attempts), fix error
 median / 95th percentile (m), fix NEES (2 = consistent), the EKF's horizontal RMS over the test part, and the
 odometry-only RMS (no fixes) beside it.
@@ -58,6 +62,10 @@ CUT = {"library": 149}
 #: Kok & Solin's drift settings (runSLAM.m): heading bias (rad/s), heading and position increment variances per step
 ODO_BIAS, ODO_SH2, ODO_SP2 = 0.005, 1e-4, 1e-4
 UT_TO_NT = 1000.0
+#: how the matchers treat grid nodes without map values (the walk's map holds only the path walked in its first
+#: part): "unknown" = the field there is drawn from the map's own statistics, so a vehicle that has left the map
+#: gets "no fix: off the map" rather than a fix on the map's edge (``--off-map impossible``: the old behaviour)
+OFF_MAP = "unknown"
 #: a fixed local origin for the maps (the walks are not georeferenced)
 ORIGIN = (np.radians(60.0), np.radians(25.0), 0.0)
 FloatArray = NDArray[np.float64]
@@ -224,6 +232,7 @@ def run_test(
     every_s: float,
     section_s: float,
     sigma_reading: float,
+    off_map: str = OFF_MAP,
 ) -> dict[str, Any]:
     """Odometry EKF over the test samples ``test`` with fixes from ``method`` (None: odometry only)."""
     from magnav_ins.aiding.matchers import BayesGridMatcher, LikelihoodMatcher
@@ -236,8 +245,8 @@ def run_test(
     k0 = int(test[0])
     ne0 = walk.ne[k0] + rng.normal(0.0, 0.3, 2)
     ekf = OdometryEkf(ne0, walk.yaw[k0] + rng.normal(0.0, np.radians(3.0)), 0.3, np.radians(3.0), 0.01)
-    bg = BayesGridMatcher() if method == "bayes_grid" else None
-    ml = LikelihoodMatcher(method="ml") if method == "ml" else None
+    bg = BayesGridMatcher(off_map=off_map) if method == "bayes_grid" else None
+    ml = LikelihoodMatcher(method="ml", off_map=off_map) if method == "ml" else None
     hist: list[tuple[float, float, float]] = []  # (t, n, e) of the EKF at each test sample
     errs, fix_err, fix_nees, attempts, issued, reasons = [], [], [], 0, 0, {}
     next_fix = walk.t[k0] + every_s
@@ -331,6 +340,7 @@ def walk_table(name: str, args: argparse.Namespace) -> dict[str, Any]:
             run_test(
                 walk, maps[frame], frame, "bayes_grid" if method == "bayes_grid_body" else method, test,
                 np.random.default_rng([args.seed, s]), args.every, args.section, args.sigma,
+                getattr(args, "off_map", OFF_MAP),
             )
             for s in range(args.seeds)
         ]  # fmt: skip
@@ -370,6 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sigma", type=float, default=100.0, help="magnetometer noise per axis (nT)")
     ap.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="keep the sensor bias in")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--off-map", choices=("unknown", "impossible"), default=OFF_MAP, help="map nodes without values")
     args = ap.parse_args(argv)
     if not args.data.is_dir():
         print(f"kok_walks: data folder {args.data} not found (../shared/data/indoor_magnetic_kok)", file=sys.stderr)

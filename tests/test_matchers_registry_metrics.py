@@ -79,7 +79,19 @@ def test_config_errors_name_the_key(cfg, needle):
 def test_matcher_keys_lists_parameters():
     assert "candidates" in matcher_keys("pmht")
     assert "method" not in matcher_keys("mlr")
-    assert set(KINDS) == {"ml", "mlr", "abl", "pmht", "bayes_grid", "particle", "particle_ins", "tercom", "iccp", "pmf"}
+    assert set(KINDS) == {
+        "ml",
+        "mlr",
+        "abl",
+        "pmht",
+        "bayes_grid",
+        "particle",
+        "particle_ins",
+        "tercom",
+        "iccp",
+        "pmf",
+        "feature",
+    }
 
 
 # ---------------------------------------------------------------------------------------------- metrics

@@ -144,6 +144,24 @@ def test_cv_kf_propagation_and_update_match_the_kalman_equations():
     assert not late.accepted and "no history" in late.reason
 
 
+def test_cv_kf_residual_monitoring_scales_the_covariance_by_nis_over_2():
+    """A fix 2 m east with P = 0.1^2 I, R = 0.1^2 I: NIS = 4 / 0.02 = 200 > 9.21, so P is scaled by 100 first
+    (position sigma 1 m) and the gain is 1 / (1 + 0.01) instead of 1/2; the NIS after scaling is 4 / 1.01."""
+    f = make_fuser("cv_kf", _estimate(sig=0.1, sig_v=0.1), NOISE, inflate_nis=9.21)
+    R = np.eye(2) * 0.01
+    lat, lon = latlon(_dummy_frame(), np.array([0.0]), np.array([2.0]))
+    inn = f.correct(Fix(0.0, float(lat[0]), float(lon[0]), R, True, "", 0.0, "test"))
+    assert inn.accepted and inn.nis == pytest.approx(4.0 / 1.01, rel=1e-4)
+    assert f.x[1] == pytest.approx(2.0 / 1.01, rel=1e-4)  # K = 1 / 1.01 on the east position
+    assert f.P[1, 1] == pytest.approx(1.0 * 0.01 / 1.01, rel=1e-4)
+    small = make_fuser("cv_kf", _estimate(sig=0.1, sig_v=0.1), NOISE, inflate_nis=9.21)
+    lat, lon = latlon(_dummy_frame(), np.array([0.0]), np.array([0.3]))  # NIS 4.5: below, the plain update
+    small.correct(Fix(0.0, float(lat[0]), float(lon[0]), R, True, "", 0.0, "test"))
+    assert small.x[1] == pytest.approx(0.15, rel=1e-4)
+    with pytest.raises(ConfigError):
+        make_fuser("cv_kf", _estimate(), NOISE, inflate_nis=1.0)
+
+
 def _dummy_frame() -> GridMap:
     return GridMap(np.arange(3.0), np.arange(3.0), np.zeros((3, 3)), kind="total_field_anomaly_nt",
                    frame="local", altitude_m=0.0, origin=ORIGIN)  # fmt: skip
@@ -244,3 +262,28 @@ def test_storms_turn_study_two_runs(tmp_path):
     assert e["fusion"] == "cv_kf" and e["availability"] > 0.9
     assert e["rms_after_first_fix_m"] < 0.3
     assert doc["free_inertial"]["rms_horizontal_m"] > 10.0
+
+
+def test_cover_rivals_of_the_likelihood_widens_r_by_the_hidden_peak():
+    """Two equal likelihood peaks 0.8 m apart along north (a scalar field with two identical wells), the filter's
+    prior narrow (0.1 m) on the first: the posterior shows one peak (the prior suppresses the other by e^-32), so
+    the posterior-rival guard sees nothing; the likelihood rivals add w d d^T with w = 1/2, d = 0.8 m north: R_NN
+    grows by 0.32 m^2, R_EE not at all."""
+    ax = np.arange(-2.0, 2.0001, 0.05)
+    n, e = np.meshgrid(ax, ax, indexing="ij")
+    well = lambda n0: np.exp(-((n - n0) ** 2 + e**2) / (2 * 0.15**2))  # noqa: E731
+    fmap = GridMap(ax, ax, 100.0 * (1.0 - well(0.0) - well(0.8)), kind="total_field_anomaly_nt", frame="local",
+                   altitude_m=0.0, origin=ORIGIN)  # fmt: skip
+    prior = nav_estimate(fmap, 0.0, np.array([0.0, 0.0]), np.zeros(2), np.eye(2) * 0.01)
+    rd = FieldReadings(np.array([0.0]), np.array([0.0]), 10.0, "total_field_anomaly_nt")
+    fixes = {}
+    for cover in (False, True):
+        m = BayesGridMatcher(guards=False, map_sigma=0.0, cover_rivals=cover, rivals_of="likelihood", quantisation=0.0)
+        fixes[cover] = m.to_fix(m.update(m.initiate(prior), rd, fmap))
+        assert fixes[cover].available, fixes[cover].reason
+        assert np.hypot(*local(fmap, fixes[cover].lat, fixes[cover].lon)) < 0.06  # the first well
+    dR = fixes[True].cov_ne - fixes[False].cov_ne
+    assert dR[0, 0] == pytest.approx(0.32, rel=0.05)
+    assert abs(dR[1, 1]) < 1e-9 and abs(dR[0, 1]) < 0.02
+    with pytest.raises(ConfigError, match="rivals_of"):
+        BayesGridMatcher(rivals_of="prior")

@@ -260,6 +260,7 @@ def build_map(sc: Scenario) -> Any:
                 streets_n = opts.pop("streets_north_m", None)
                 streets_e = opts.pop("streets_east_m", None)
                 step = float(opts.pop("step_m", 1.0))
+                max_dist = float(opts.pop("max_distance_m", 5.0))
                 shape = tuple(opts.pop("shape", (200, 200)))
                 grid = synthetic.random_field_map(
                     shape,  # type: ignore[arg-type]
@@ -278,7 +279,7 @@ def build_map(sc: Scenario) -> Any:
                 from ..maps.track import road_network_from_grid
 
                 # a street grid sampled every step_m along streets at the given northings / eastings (m)
-                return road_network_from_grid(grid, streets_n or [], streets_e or [], step)
+                return road_network_from_grid(grid, streets_n or [], streets_e or [], step, max_distance_m=max_dist)
         except TypeError as exc:
             raise ConfigError(f"{sc.where('map.options')}: {exc}") from None
         raise ConfigError(
@@ -581,7 +582,7 @@ def run_estimator(
             if est.smooth and fkind == "ukf":
                 fopts["keep_history"] = True
             fuser = make_fuser(fkind, prior, noise, **fopts)
-            matcher = build_matcher(est.matcher)
+            matcher = build_matcher(est.matcher, fmap=fmap)  # road = "map": the road map is the matched map
             batch = est.matcher.get("batch", getattr(matcher, "batch", None))
             default = int(batch) if (batch and mkind not in RECURSIVE_KINDS) else 1
             pipe = Pipeline(

@@ -1,7 +1,8 @@
 """Fusion back ends behind :class:`magnav_ins.core.protocols.Fuser`: a UKF (filterpy), a factor graph (GTSAM,
-iSAM2 + batch LM), a free-inertial baseline and Storms' 2-D constant-velocity Kalman filter (``cv_kf``). :func:`make_fuser` builds one by name without importing the
-other back ends' libraries; :func:`check_fusion_options` validates a fusion spec without building (or importing)
-anything."""
+iSAM2 + batch LM), a free-inertial baseline, Storms' 2-D constant-velocity Kalman filter (``cv_kf``) and the
+matcher's own solution (``solution``: a stand-alone navigator such as MagNavigate). :func:`make_fuser` builds one by
+name without importing the other back ends' libraries; :func:`check_fusion_options` validates a fusion spec without
+building (or importing) anything."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from ...core.errors import ConfigError
 from ...core.types import NavEstimate
 from .common import ExtraStates, ImuNoise, LocalFrame
 
-FUSER_KINDS = ("ukf", "graph", "free_inertial", "cv_kf")
+FUSER_KINDS = ("ukf", "graph", "free_inertial", "cv_kf", "solution")
 
 #: optional error states of the inertial fusers (:class:`common.ExtraStates`)
 EXTRA_STATE_OPTIONS = ("scale_factors", "scale_factor_tau_s", "map_bias_sigma_m", "map_bias_tau_s", "map_bias_sources")
@@ -38,7 +39,8 @@ FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
         "altitude_hold_sigma_m",
     ),
     "free_inertial": ("gate_probability", *_CORE, "integrity_risk", *EXTRA_STATE_OPTIONS),
-    "cv_kf": ("accel_sigma_mps2", "turn_command", "gate_probability", "altitude_hold"),
+    "cv_kf": ("accel_sigma_mps2", "turn_command", "gate_probability", "inflate_nis", "altitude_hold"),
+    "solution": ("altitude_hold",),
 }
 
 
@@ -79,6 +81,10 @@ def make_fuser(kind: str, init: NavEstimate, noise: ImuNoise, **options):
         from .cv_kf import CvKalmanFuser
 
         return CvKalmanFuser(init, noise, **options)
+    if kind == "solution":
+        from .solution import SolutionFuser
+
+        return SolutionFuser(init, noise, **options)
     from .free_inertial import FreeInertial
 
     return FreeInertial(init, noise, **options)

@@ -4,6 +4,7 @@
 * :mod:`.pmht` - PMHT-MM (Wang et al. 2022, seed 001, sec. 3)
 * :mod:`.bayes_grid` - Storms' Bayes grid matcher (seed 004, sec. 3.4)
 * :mod:`.particle` - MagNavigate and INS-driven particle filters (seed 003 ch. V)
+* :mod:`.features` - Shockley's feature matching with an RSS fit on road maps (seed 003 sec. 4.6.3)
 * :mod:`.metrics` - availability, fix error bins, fix NEES
 * :mod:`.registry` - ``build_matcher(config_dict)``
 
@@ -11,6 +12,7 @@ Every matcher returns a :class:`Fix` ("no fix" with a reason for data problems, 
 """
 
 from .bayes_grid import BayesGridMatcher, BayesGridState
+from .features import FeatureMatcher
 from .likelihood import ABL, ML, MLR, LikelihoodMatcher
 from .particle import ParticleFilter, ParticleState
 from .pmht import PMHTMatcher
@@ -24,6 +26,7 @@ __all__ = [
     "RECURSIVE_KINDS",
     "BayesGridMatcher",
     "BayesGridState",
+    "FeatureMatcher",
     "LikelihoodMatcher",
     "PMHTMatcher",
     "ParticleFilter",

@@ -38,7 +38,21 @@ published): several separated posterior peaks inside the prior region (a second 
 ``prior_region_sigma`` ellipse) -> "no fix, ambiguous"; less than ``min_peak_mass`` of the posterior inside the
 fix's own ``peak_mass_sigma`` ellipse (R does not describe the posterior: it is spread over other modes) -> "no
 fix, ambiguous"; a reading residual at the peak above ``max_residual_sigma`` s per component (chi-square) -> "no
-fix, large residual". Always: off the map, flat map (feature variability, Wang eq. 14), NaN reading -> "no fix"
+fix, large residual". Storms' own suggestions (sec. 4.3.3), each an option: ``max_jump_m`` ignores a peak more
+than that many metres from the estimate ("residual monitoring ... so many meters away from the estimate"), and
+``cover_rivals`` keeps the fix but widens R to cover the other peaks (R plus the peaks' second moment about the fix,
+each weighted by its share of the peaks' density) instead of refusing it: with ``rivals_of = "posterior"`` the
+posterior's other peaks in the prior region (those the ambiguity guard refuses), with ``"likelihood"`` the
+likelihood's own peaks anywhere in the window holding at least ``peak_ratio`` of its maximum. The second is the one
+that acts when the filter's prior is wrong and too sure of itself (Storms' filter through the turn without the turn
+command): the prior then suppresses the true peak in the posterior, and only the likelihood still shows it.
+
+Off the map (``off_map``): ``"impossible"`` (default) gives nodes without map values zero likelihood, so the
+posterior is forced onto the mapped nodes even when the vehicle has left the map (the peak then sits on the map's
+edge); ``"unknown"`` gives them the likelihood of the reading under the map's own field statistics
+(:func:`~.map_error.off_map_loglik`: the field there is unknown), so leaving the map shows as posterior mass where
+the map has no values: more than ``max_off_map_mass`` of it, or the peak there, gives "no fix: off the map", less
+widens Storms' likelihood lines (R). Always: off the map, flat map (feature variability, Wang eq. 14), NaN reading -> "no fix"
 with the reason.
 """
 
@@ -62,7 +76,7 @@ from ._local import (
     spacing_of,
     window_axes,
 )
-from .map_error import resolve_map_error
+from .map_error import off_map_loglik, resolve_map_error
 
 FloatArray = NDArray[np.float64]
 
@@ -129,6 +143,11 @@ class BayesGridMatcher:
     min_peak_mass: float = 0.5
     peak_mass_sigma: float = 3.0
     guards: bool = True
+    cover_rivals: bool = False
+    max_jump_m: float | None = None
+    off_map: str = "impossible"
+    max_off_map_mass: float = 0.5
+    rivals_of: str = "posterior"
     min_variability: float = 0.5
     max_nodes: int = 1_000_000
     quantisation: float = 1.0
@@ -138,6 +157,10 @@ class BayesGridMatcher:
     def __post_init__(self) -> None:
         if self.spread_of not in ("likelihood", "posterior"):
             raise ConfigError(f"bayes_grid 'spread_of': expected 'likelihood' or 'posterior', got {self.spread_of!r}")
+        if self.rivals_of not in ("posterior", "likelihood"):
+            raise ConfigError(f"bayes_grid 'rivals_of': expected 'posterior' or 'likelihood', got {self.rivals_of!r}")
+        if self.off_map not in ("impossible", "unknown"):
+            raise ConfigError(f"bayes_grid 'off_map': expected 'impossible' or 'unknown', got {self.off_map!r}")
         if self.covariance not in COVARIANCE_RULES:
             raise ConfigError(
                 f"bayes_grid 'covariance': expected one of {', '.join(COVARIANCE_RULES)}, got {self.covariance!r}"
@@ -245,12 +268,24 @@ class BayesGridMatcher:
         ci = np.linalg.inv(cov)
         d2 = ci[0, 0] * gn**2 + 2 * ci[0, 1] * gn * ge + ci[1, 1] * ge**2
         logprior = -0.5 * d2  # eq. 3.5 (normalisation cancels)
-        loglik = np.where(finite, loglik, -np.inf)
+        off = ~finite
+        if self.off_map == "unknown" and np.any(off):  # the field where the map has none: the map's statistics
+            loglik = np.where(finite, loglik, off_map_loglik(z[None], fmap, float(np.median(s2))))
+        else:
+            loglik = np.where(finite, loglik, -np.inf)
         logpost = logprior + loglik
         kp = np.unravel_index(int(np.argmax(logpost)), logpost.shape)
         post = np.exp(logpost - logpost[kp])
         post /= post.sum()
         n_fix, e_fix = float(gn[kp]), float(ge[kp])
+        if self.off_map == "unknown" and np.any(off):
+            mass_off = float(post[off].sum())
+            if off[kp] or mass_off > self.max_off_map_mass:
+                return Fix.no_fix(
+                    t,
+                    f"off the map: {100 * mass_off:.0f} % of the posterior lies where the map has no values",
+                    self.name,
+                ), {"off_map_mass": mass_off}
         # guard: residual at the peak
         res2 = float(np.sum((m[kp] - z) ** 2) / (s2[kp] if np.ndim(s2) else s2))
         if self.guards and res2 > ncomp * self.max_residual_sigma**2:
@@ -263,7 +298,12 @@ class BayesGridMatcher:
         inside = d2 <= self.prior_region_sigma**2
         far = (gn - n_fix) ** 2 + (ge - e_fix) ** 2 >= sep**2
         rivals = local_max & inside & far
-        if self.guards and np.any(rivals):
+        if self.max_jump_m is not None and np.hypot(n_fix, e_fix) > self.max_jump_m:  # Storms' residual monitoring
+            return Fix.no_fix(
+                t, f"large residual: the peak lies {np.hypot(n_fix, e_fix):.2f} m from the estimate (> "
+                f"{self.max_jump_m:g} m)", self.name,
+            ), {}  # fmt: skip
+        if self.guards and not self.cover_rivals and np.any(rivals):
             ratio = float(post[rivals].max() / post[kp])
             return Fix.no_fix(
                 t, f"ambiguous: {int(rivals.sum())} other peak(s) in the prior region (ratio {ratio:.2f})", self.name
@@ -284,6 +324,17 @@ class BayesGridMatcher:
             sig_e = _tail_sigma(src[kp[0], :], e_ax, e_fix, self.tail)
             R = np.diag([sig_n**2, sig_e**2])
         R = R + np.eye(2) * step**2 / 12.0
+        if self.cover_rivals and self.rivals_of == "likelihood":  # the likelihood's own peaks in the window
+            lk = np.exp(loglik - np.max(loglik))
+            lmax = (lk == ndimage.maximum_filter(lk, size=3, mode="constant", cval=0.0)) & (lk >= self.peak_ratio)
+            rivals = lmax & far
+            dens, dens_fix = lk[rivals], float(lk[kp])
+        else:
+            dens, dens_fix = post[rivals], float(post[kp])
+        if self.cover_rivals and np.any(rivals):  # R covers the other peaks: the modes' second moment about the fix
+            w = dens / (dens_fix + dens.sum())
+            d = np.column_stack([gn[rivals] - n_fix, ge[rivals] - e_fix])
+            R = R + (d * w[:, None]).T @ d
         if not np.all(np.isfinite(R)):
             return Fix.no_fix(t, "posterior spread not finite", self.name), {}
         # the posterior mass the fix's own covariance accounts for: inside its k-sigma ellipse about the peak

@@ -41,6 +41,12 @@ then the second moment of the tempered likelihood about the fix (it covers every
 quantisation ``step^2/12`` and ``min_fix_sigma_m^2`` (0 by default; the old knob for what the likelihood cannot
 see). ``honest=False`` skips the temperature (the thesis' likelihood).
 
+Off the map (``off_map = "unknown"``; the default ``"impossible"`` leaves candidates without map values out, so
+near the map's edge the best candidate is on the edge even when the vehicle has left the map): every scanned node
+without map values holds the hypothesis "the field here is unknown", with the likelihood of the section under the
+map's own field statistics (:func:`~.map_error.off_map_loglik`); when those nodes hold more than
+``max_off_map_mass`` of the (untempered) likelihood, "no fix: off the map".
+
 "No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
 ``min_variability`` times the sensor sigma), an ambiguous likelihood (its 99.9 % region falls into several parts and
 those other than the best one's hold more than ``ambiguity_mass``; the reason gives the mass and the distance), a
@@ -75,6 +81,7 @@ from ._local import (
 )
 from .map_error import (
     MapErrorModel,
+    off_map_loglik,
     resolve_map_error,
     section_covariance,
     section_transform,
@@ -111,6 +118,7 @@ class Surface:
     lane: NDArray[np.int64] | None = None
     section: Section | None = None
     grow: float = 1.0
+    off_loglik: float = float("nan")
 
 
 #: the "no fix" reason when the likelihood's peak region reaches the border of the scanned window
@@ -155,7 +163,8 @@ class LikelihoodMatcher:
     alone gave fix sigmas under 1 m for fixes 200-400 m off; 0 = none); ``max_nodes`` cap on scanned nodes;
     ``map_correlation_m`` overrides the map's error correlation length (m); ``honest`` applies the temperature;
     ``ambiguity_mass`` (0.05; 1 = off); ``count_overlap``; ``track_error`` (INS drift in the section covariance);
-    ``window_growth`` (widenings of the search window). The module docstring says what the covariance contains.
+    ``window_growth`` (widenings of the search window); ``off_map`` "impossible" | "unknown" and
+    ``max_off_map_mass`` (module docstring). The module docstring says what the covariance contains.
 
     The matcher remembers the time of the last reading of its last issued fix (``count_overlap``): one instance
     serves one stream of windows (a window whose last reading is not newer starts a new stream)."""
@@ -186,6 +195,8 @@ class LikelihoodMatcher:
     count_overlap: bool = True
     track_error: bool = True
     window_growth: int = 2
+    off_map: str = "impossible"
+    max_off_map_mass: float = 0.5
     name: str = ""
     _last_fix_t: float = field(default=-np.inf, init=False, repr=False, compare=False)
 
@@ -204,6 +215,8 @@ class LikelihoodMatcher:
             raise ConfigError(
                 "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m >= 0"
             )
+        if self.off_map not in ("impossible", "unknown"):
+            raise ConfigError(f"likelihood matcher 'off_map': expected 'impossible' or 'unknown', got {self.off_map!r}")
         if not self.name:
             self.name = self.method
 
@@ -397,6 +410,9 @@ class LikelihoodMatcher:
                 if isinstance(surf, str):
                     return Fix.no_fix(t, surf, self.name)
                 surf = replace(surf, grow=grow)
+                if self.off_map == "unknown" and surf.section is not None:
+                    off = off_map_loglik(surf.section.z, fmap, surf.section.s2_base)
+                    surf = replace(surf, off_loglik=off)
                 fix = self.decide(surf, t)
                 if not fix.reason.startswith(EDGE_REASON):
                     return fix
@@ -421,6 +437,20 @@ class LikelihoodMatcher:
                 self.name,
             )
         grid = surf.shape is not None
+        if np.isfinite(surf.off_loglik):  # off_map = "unknown": nodes without map values hold the field's prior
+            n_off = int(np.sum(~np.isfinite(logl)))
+            if n_off:
+                on = logl[np.isfinite(logl)]
+                top = max(float(on.max()), surf.off_loglik)
+                w_on = float(np.sum(np.exp(on - top)))
+                w_off = n_off * float(np.exp(surf.off_loglik - top))
+                mass_off = w_off / (w_on + w_off)
+                if mass_off > self.max_off_map_mass:
+                    return Fix.no_fix(
+                        t,
+                        f"off the map: {100 * mass_off:.0f} % of the likelihood lies where the map has no values",
+                        self.name,
+                    )
         if grid:
             ki, kj = divmod(k, surf.shape[1])  # type: ignore[index]
             n_fix, e_fix = float(surf.n[ki]), float(surf.e[kj])

@@ -261,3 +261,38 @@ def whitened_misfit(residual: ArrayLike, sigma: ArrayLike, transform: ArrayLike 
     proj = v[:, keep].T @ (t @ r)  # (rank, c)
     chi2 = float(np.sum(proj**2 / w[keep][:, None]))
     return chi2, int(keep.sum() * r.shape[1]) - 2
+
+
+# ------------------------------------------------------------------------------------------------ off the map
+def field_statistics(fmap: FieldMap) -> tuple[FloatArray, FloatArray]:
+    """Mean and variance per component (map unit, unit^2) of the field over the map's finite values: what a
+    reading is expected to be where the map has no value (the field's prior). Cached on the map object."""
+    cached = getattr(fmap, "_field_statistics", None)
+    if cached is not None:
+        return cached
+    v = np.asarray(fmap.values, dtype=float)
+    ncomp = int(getattr(getattr(fmap, "kind", None), "components", 1) or 1)
+    v = v.reshape(-1, ncomp)
+    v = v[np.all(np.isfinite(v), axis=1)]
+    out = (v.mean(axis=0), v.var(axis=0)) if len(v) else (np.zeros(ncomp), np.full(ncomp, np.inf))
+    try:
+        object.__setattr__(fmap, "_field_statistics", out)
+    except (AttributeError, TypeError):
+        pass
+    return out
+
+
+def off_map_loglik(z: ArrayLike, fmap: FieldMap, s2: ArrayLike) -> float:
+    """Log-likelihood of the readings ``z`` (K, c) at a place where the map has no value, relative to the scale of
+    an on-map likelihood ``-1/2 sum (z - m)^2 / s2``: the field there is unknown and drawn from the map's own field
+    statistics (:func:`field_statistics`), ``z_k ~ N(mu, var + s2)`` independently, so
+
+        log L_off = -1/2 sum_k sum_c [ (z - mu)^2 / (var + s2) + log((var + s2) / s2) ].
+
+    A matcher compares it with its on-map candidates (the hypothesis "the vehicle is off the map" has this
+    likelihood at every node without map values) to know when the vehicle has left its map (issue 15)."""
+    mu, var = field_statistics(fmap)
+    zz = np.asarray(z, dtype=float).reshape(-1, mu.size)
+    s = np.asarray(s2, dtype=float)
+    tot = var[None, :] + s
+    return float(-0.5 * np.sum((zz - mu) ** 2 / tot + np.log(tot / s)))

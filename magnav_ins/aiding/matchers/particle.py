@@ -16,11 +16,15 @@ State per particle, in metres north/east of a :class:`~._local.LocalFrame` about
 
 Initialisation: ``n_particles`` (500) from the prior's covariance (``init="gaussian"``, the default: the cloud
 must cover where the fuser thinks it may be), or uniform in a disc of ``init_radius_m`` (50 m) about the prior
-position as in the thesis (``init="disc"``, 003 sec. 5.1). A Gaussian draw is moment-matched (shifted and scaled so
+position as in the thesis (``init="disc"``, 003 sec. 5.1). The particles' velocity is the prior's, or zero with
+``start_at_rest`` (the thesis: "with zero velocity and acceleration"; the cloud's moments without readings then
+start at rest too). A Gaussian draw is moment-matched (shifted and scaled so
 that its sample mean and covariance are exactly the prior's), so that the fix below is not made of sampling noise.
 Road penalisation (003 sec. 5.2): with a ``road`` map (anything with ``nearest(lat, lon) -> (idx, dist, s)``, e.g.
 :class:`~magnav_ins.maps.track.TrackMap`), every prediction multiplies the weights by
-``N(d; 0, road_sigma_m^2)`` of the distance to the nearest road point (6 m).
+``N(d; 0, road_sigma_m^2)`` of the distance to the nearest road point (6 m), a likelihood of its own: the cloud is
+resampled after it when its effective sample size falls below half the particles (without that, a cloud whose reading updates are skipped, e.g. off the map,
+degenerates to one particle).
 
 Measurement update (``measurement="field"``). A reading is ``z = m(x) + c + b(x) + v``: the map at the particle,
 an unknown level offset ``c`` between readings and map (levelling, diurnal variation, the platform's own field:
@@ -53,10 +57,15 @@ Output (:meth:`ParticleFilter.to_fix`).
   cloud's posterior itself to a fuser at every reading (what this filter did before) counts the prior and every
   earlier reading again at each fix: on the Osborne tie line 10152 (tactical IMU, real readings) that took the
   filter to 28 km error with 1 m sigmas.
-* ``fix_output="posterior"``: the cloud's weighted mean and covariance (the thesis' stand-alone navigator,
-  Shockley 003 ch. V; the cloud is never re-drawn).
+* ``fix_output="posterior"``: the cloud's weighted mean and covariance at every request, the thesis' stand-alone
+  navigator (Shockley 003 sec. 5.1: "the navigation solutions presented here are the weighted particle mean at each
+  epoch"; the cloud is never re-drawn). This is a navigation solution, not a measurement for another filter (it
+  holds the prior and every earlier reading): pair it with the ``solution`` fuser
+  (:mod:`magnav_ins.aiding.fusion.solution`), which reports it as the estimate. It is issued also after an update
+  that was skipped (off the map, flat map, NaN reading: the predicted cloud is then the solution) and when the cloud
+  is multi-modal (its covariance then spans the modes); only a collapsed cloud gives "no fix".
 
-"No fix" (with the reason, and the cloud is kept) when the last update was off the map, on a flat map (the feature
+"No fix" in the increment mode (with the reason, and the cloud is kept) when the last update was off the map, on a flat map (the feature
 variability, Wang eq. 14, of a 9 x 9 stencil of half-width ``max(2 sigma_cloud, flat_window_m)`` about the cloud
 mean below ``min_variability`` sensor sigmas) or had a NaN reading; when the cloud is not unimodal (more than
 ``ambiguity_mass`` of its weight more than 3 sigma, Mahalanobis, from its mean: a Gaussian has 1.1 %); and in the
@@ -92,6 +101,10 @@ _CLOUD_TAIL_CHI2 = 9.0
 #: an increment is issued only if the cloud's mean and the increment are within the 99.9 % region (chi-square 2 dof)
 #: of the prior the cloud was drawn from: otherwise the likelihood peaks where there are no particles
 _PRIOR_CONSISTENCY_CHI2 = 13.8155
+#: after the road penalty the cloud is resampled when its effective sample size drops below this fraction (at most
+#: ``resample_threshold``): a likelihood applied at every prediction would otherwise, resampled each time, wear the
+#: cloud down to a few particles between readings
+_ROAD_RESAMPLE = 0.5
 #: the readings' forecast check scales an increment's covariance only above this chi-square quantile
 MISFIT_PROBABILITY = 0.99
 
@@ -200,7 +213,8 @@ class ParticleFilter:
     ``fix_matcher``; ``map_sigma`` (map error 1-sigma overriding the map's layer; 0 = from the map) and
     ``map_correlation_m`` (overrides the map's correlation length); ``level_sigma`` (None = unknown level);
     ``resample_threshold``, ``roughening``, ``roughen_min_m``; ``min_variability`` and ``flat_window_m`` (flat-map
-    test); ``fix_output`` "increment" | "posterior"; ``ambiguity_mass``; ``max_fix_sigma_m``."""
+    test); ``fix_output`` "increment" | "posterior"; ``ambiguity_mass``; ``max_fix_sigma_m``; ``start_at_rest``
+    (particles start with zero velocity)."""
 
     n_particles: int = 500
     dynamics: str = "gauss_markov"
@@ -226,6 +240,7 @@ class ParticleFilter:
     ambiguity_mass: float = 0.05
     max_fix_sigma_m: float | None = None
     prior_inflation: float = 1.5
+    start_at_rest: bool = False
     name: str = "particle"
 
     def __post_init__(self) -> None:
@@ -270,7 +285,7 @@ class ParticleFilter:
         c_pv = P[np.ix_(ip, iv)] * k2
         vv_now = c_vv.copy()
         c_vv = c_vv * k2
-        v0 = np.asarray(nav.v_n, float)[:2]
+        v0 = np.zeros(2) if self.start_at_rest else np.asarray(nav.v_n, float)[:2]
         if self.init == "disc":
             r = self.init_radius_m * np.sqrt(rng.uniform(size=m))
             a = rng.uniform(0.0, 2 * np.pi, size=m)
@@ -378,7 +393,7 @@ class ParticleFilter:
         )  # fmt: skip
         st.extra = dict(state.extra)
         st.extra["moved_m"] = st.extra.get("moved_m", 0.0) + float(np.hypot(*np.mean(pos - state.pos, axis=0)))
-        return self._maybe_resample(st, rng)
+        return self._maybe_resample(st, rng, force_check=self.road is not None, threshold=_ROAD_RESAMPLE)
 
     def update(self, state: ParticleState, readings: FieldReadings, fmap: FieldMap) -> ParticleState:
         """Weight by the last reading (``"field"``) or by a fix from ``fix_matcher`` (``"fix"``); SIR resampling."""
@@ -405,7 +420,7 @@ class ParticleFilter:
     def to_fix(self, state: ParticleState) -> Fix:
         """The increment since the cloud was drawn, or the cloud's weighted mean and covariance
         (``fix_output``); "no fix" with the reason otherwise (module docstring)."""
-        if state.reason:
+        if state.reason and self.fix_output != "posterior":
             return Fix.no_fix(state.t, state.reason, self.name)
         w = np.exp(state.logw)
         mean = w @ state.pos
@@ -416,6 +431,9 @@ class ParticleFilter:
             ci = np.linalg.inv(cov)
         except np.linalg.LinAlgError:
             return Fix.no_fix(state.t, "particle cloud collapsed (singular covariance)", self.name)
+        if self.fix_output == "posterior":  # the navigator's solution (module docstring)
+            lat, lon = state.frame.to_latlon(mean[0], mean[1])
+            return Fix(state.t, float(lat), float(lon), cov, True, "", state.neff, self.name)
         m2 = np.einsum("ij,jk,ik->i", d, ci, d)
         tail = float(w[m2 > _CLOUD_TAIL_CHI2].sum())
         if tail > self.ambiguity_mass:
@@ -425,7 +443,7 @@ class ParticleFilter:
                 self.name,
                 state.neff,
             )
-        if self.fix_output == "posterior" or state.prior_cov is None:
+        if state.prior_cov is None:
             lat, lon = state.frame.to_latlon(mean[0], mean[1])
             return Fix(state.t, float(lat), float(lon), cov, True, "", state.neff, self.name)
         ip = [0, 1] if self.dynamics == "ins" else [0, 3]
@@ -593,12 +611,13 @@ class ParticleFilter:
         return -0.5 * np.einsum("ij,jk,ik->i", r, ri, r), ""
 
     def _maybe_resample(
-        self, state: ParticleState, rng: np.random.Generator, force_check: bool = False
+        self, state: ParticleState, rng: np.random.Generator, force_check: bool = False, threshold: float | None = None
     ) -> ParticleState:
         w = np.exp(state.logw)
         neff = float(1.0 / np.sum(w * w))
         m = len(w)
-        if force_check and neff < self.resample_threshold * m + 1e-9:
+        thr = self.resample_threshold if threshold is None else min(threshold, self.resample_threshold)
+        if force_check and neff < thr * m + 1e-9:
             idx = _systematic_resample(w, float(rng.uniform()))
             pos = state.pos[idx]
             dv = None if state.dv is None else state.dv[idx]

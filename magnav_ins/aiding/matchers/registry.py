@@ -17,13 +17,16 @@ kind               class                                                        
 ``tercom``         :class:`~.tercom.TercomMatcher` (Golden 1980)                 batch
 ``iccp``           :class:`~.iccp.ICCPMatcher` (Besl & McKay 1992)               batch
 ``pmf``            :class:`~.pmf.PointMassFilter` (Bergman et al. 1999)          recursive
+``feature``        :class:`~.features.FeatureMatcher` (Shockley's RSS fit)       batch
 =================  ==========================================================  ========
 
 ``preset`` (where a class has ``PRESETS``) fills in a named set of defaults under the given keys, e.g.
 ``{"kind": "pmht", "preset": "wang", "batch": 15}`` is PMHT-MM as Wang et al. publish it with T = 15.
 
 A particle filter's ``fix_matcher`` may itself be a config dict; its ``road`` map is passed as an object
-(``build_matcher(cfg, road=track_map)``), never in the dict.
+(``build_matcher(cfg, road=track_map)``), or named in the dict as ``road = "map"``: the map the matcher matches
+against is also the road network (a :class:`~magnav_ins.maps.track.TrackMap`; Shockley's road penalisation,
+003 sec. 5.1), handed in as ``build_matcher(cfg, fmap=the_map)`` (without ``fmap`` the key is only checked).
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from typing import Any
 
 from ...core.errors import ConfigError
 from .bayes_grid import BayesGridMatcher
+from .features import FeatureMatcher
 from .iccp import ICCPMatcher
 from .likelihood import LikelihoodMatcher
 from .particle import ParticleFilter
@@ -53,6 +57,7 @@ KINDS: dict[str, tuple[type, dict[str, Any]]] = {
     "tercom": (TercomMatcher, {}),
     "iccp": (ICCPMatcher, {}),
     "pmf": (PointMassFilter, {}),
+    "feature": (FeatureMatcher, {}),
 }
 
 #: kinds implementing ``RecursiveMatcher`` (initiate / predict / update / to_fix) rather than ``match``.
@@ -64,9 +69,8 @@ _OBJECT_KEYS = {"road"}
 def matcher_keys(kind: str) -> list[str]:
     """The configuration keys a kind accepts (besides ``kind``)."""
     cls, fixed = _lookup(kind)
-    return sorted(
-        f.name for f in dataclasses.fields(cls) if f.init and f.name not in fixed and f.name not in _OBJECT_KEYS
-    )
+    names = {f.name for f in dataclasses.fields(cls) if f.init and f.name not in fixed}
+    return sorted(names)  # "road" is accepted as the string "map" (module docstring)
 
 
 def _lookup(kind: object) -> tuple[type, dict[str, Any]]:
@@ -109,8 +113,9 @@ def _with_preset(kind: str, cls: type, config: Mapping[str, Any]) -> Mapping[str
     return {**presets[name], **config}
 
 
-def build_matcher(config: Mapping[str, Any], *, road: Any = None) -> Any:
-    """A matcher from ``config`` (must hold ``kind``); see the module docstring."""
+def build_matcher(config: Mapping[str, Any], *, road: Any = None, fmap: Any = None) -> Any:
+    """A matcher from ``config`` (must hold ``kind``); see the module docstring. ``fmap``: the map the matcher will
+    match against (used only for ``road = "map"``)."""
     if not isinstance(config, Mapping):
         raise ConfigError(f"matcher: expected a table/dict with a 'kind', got {type(config).__name__}")
     if "kind" not in config:
@@ -123,8 +128,21 @@ def build_matcher(config: Mapping[str, Any], *, road: Any = None) -> Any:
     for key, value in config.items():
         if key == "kind":
             continue
-        if key not in fields or key in fixed or key in _OBJECT_KEYS:
+        if key not in fields or key in fixed:
             raise ConfigError(f"matcher {kind!r}: unknown key '{key}'; expected one of {matcher_keys(kind)}")
+        if key in _OBJECT_KEYS:
+            if value != "map":
+                raise ConfigError(
+                    f"matcher {kind!r} key '{key}': expected \"map\" (the matched map is the road network), got {value!r}"
+                )
+            if fmap is not None:
+                if not callable(getattr(fmap, "nearest", None)):
+                    raise ConfigError(
+                        f"matcher {kind!r} key '{key}': road = \"map\" needs a road map (a track map with points "
+                        f"along roads), got {type(fmap).__name__}"
+                    )
+                road = fmap
+            continue
         f = fields[key]
         default = f.default if f.default is not dataclasses.MISSING else None
         if key == "fix_matcher":
