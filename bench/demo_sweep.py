@@ -17,7 +17,7 @@ from magnav_ins.studies.demo import DemoConfig, run_demo
 KEYS = (
     "rms_horizontal_m", "free_inertial_rms_horizontal_m", "improvement_factor", "max_horizontal_m",
     "final_horizontal_m", "fixes_issued", "fix_attempts", "fixes_accepted", "fix_error_median_m", "fix_error_rms_m",
-    "nees_mean", "duration_s", "aided_run_s", "wall_s",
+    "nees_mean", "fix_nees_mean", "hpl_median_m", "hpl_exceedance", "duration_s", "aided_run_s", "wall_s",
 )  # fmt: skip
 
 

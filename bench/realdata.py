@@ -24,12 +24,14 @@ RIO_SURVEY = ROOT.parent / "shared" / "data" / "rio_magnetic" / "rio-magnetic.cs
 
 
 def main(argv: list[str] | None = None) -> int:
-    from magnav_ins.studies.suite import report, run_suite
+    from magnav_ins.studies.suite import DEFAULT_SEEDS, report, run_suite
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--json", action="store_true", help="print the group figures as one JSON line on stdout")
     p.add_argument("--quick", action="store_true", help="the CI subset (under 3 minutes on 2 cores)")
-    p.add_argument("--seeds", type=int, default=1, help="Monte Carlo runs per case (default 1)")
+    p.add_argument(
+        "--seeds", type=int, default=DEFAULT_SEEDS, help=f"Monte Carlo runs per case (default {DEFAULT_SEEDS})"
+    )
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--only", default=None, help="comma-separated groups to run (default all)")
     args = p.parse_args(argv)

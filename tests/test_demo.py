@@ -55,6 +55,9 @@ def test_demo_end_to_end(tmp_path, capsys):
     # the acceptance figure, recomputed from the two RMS values
     assert s["improvement_factor"] == pytest.approx(s["free_inertial_rms_horizontal_m"] / s["rms_horizontal_m"])
     assert s["improvement_factor"] >= 3.0
+    # with the matcher's default settings the filter is honest: its NEES (against the truth) and its protection level
+    assert 0.3 <= s["nees_mean"] <= 3.0 and s["fix_nees_mean"] <= 3.0
+    assert s["hpl_exceedance"] <= 0.01 and s["hpl_median_m"] > s["rms_horizontal_m"]
     assert s["rms_horizontal_m"] <= s["max_horizontal_m"]
     assert s["final_horizontal_m"] <= s["max_horizontal_m"]
     # a whole real tie line was flown (27.5 km at 60 m/s) with fixes that the filter took
@@ -70,6 +73,7 @@ def test_demo_end_to_end(tmp_path, capsys):
         assert data[:8] == PNG_MAGIC and len(data) > 10_000
     assert f"{s['rms_horizontal_m']:.1f}" in printed and f"{s['free_inertial_rms_horizontal_m']:.1f}" in printed
     assert "free inertial" in printed and "summary.json" in printed
+    assert "NEES" in printed and "HPL" in printed
 
 
 def test_demo_out_is_a_file(tmp_path, capsys):

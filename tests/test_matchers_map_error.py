@@ -183,3 +183,70 @@ def test_ml_refuses_two_equal_peaks_in_the_window():
 
     mass, dist = (float(x) for x in re.search(r"(\d+) % of the likelihood .*nearest (\d+) m", fix.reason).groups())
     assert 30.0 <= mass <= 60.0 and 250.0 <= dist <= 310.0, fix.reason  # the copy holds half, its edge ~300 m off
+
+
+# ---------------------------------------------------------------------------------------------- Cramer-Rao floor
+def _sums(g: np.ndarray, sm2: float, s2v: float, dist: float, ell: float) -> np.ndarray:
+    """The particle filter's Fisher sums (particle._fisher_step) for readings with map gradients ``g`` (K, 2)."""
+    return np.array([len(g), *g.sum(axis=0), *(g.T @ g).ravel(), dist, ell, len(g) * sm2, s2v])
+
+
+def test_particle_fisher_bound_is_the_efficient_estimators_covariance():
+    """Readings z_k = g_k . p + c + e_k (unknown level c, independent e of variance s2): the least-squares estimate
+    of p over 4000 draws spreads exactly as the inverse of the bound the particle filter floors its fixes with."""
+    from magnav_ins.aiding.matchers.particle import _fisher_bound
+
+    rng = np.random.default_rng(11)
+    k, s2v, sm2 = 30, 1.0, 24.0
+    g = np.column_stack([0.05 * np.sin(np.arange(k) / 4.0), 0.03 * np.cos(np.arange(k) / 7.0) + 0.02])
+    a = np.column_stack([g, np.ones(k)])
+    est = np.array([np.linalg.lstsq(a, rng.normal(0.0, np.sqrt(s2v + sm2), k), rcond=None)[0][:2] for _ in range(4000)])
+    bound = np.linalg.inv(_fisher_bound(_sums(g, sm2, s2v, 0.0, float("nan")), level_unknown=True))
+    np.testing.assert_allclose(np.cov(est.T), bound, rtol=0.08, atol=0.03 * np.sqrt(bound[0, 0] * bound[1, 1]))
+    # correlated map error: the map-error part of the variance counts n / n_eff times (n_eff = 1 + D / (ell sqrt(pi)/2))
+    j_corr = _fisher_bound(_sums(g, sm2, s2v, 900.0, 200.0), level_unknown=True)
+    n_eff = 1.0 + 900.0 / (200.0 * np.sqrt(np.pi) / 2.0)
+    j_ind = _fisher_bound(_sums(g, sm2, s2v, 0.0, float("nan")), level_unknown=True)
+    np.testing.assert_allclose(j_corr, j_ind * (s2v + sm2) / (s2v + sm2 * k / n_eff), rtol=1e-9)
+
+
+def test_cramer_rao_floor_raises_only_the_over_confident_direction():
+    from magnav_ins.aiding.matchers.particle import _cramer_rao_floor
+
+    r = np.diag([10.0**2, 400.0**2])
+    out = _cramer_rao_floor(r, np.eye(2) / 50.0**2)
+    np.testing.assert_allclose(out, np.diag([50.0**2, 400.0**2]), rtol=1e-9)
+    np.testing.assert_allclose(_cramer_rao_floor(r, np.eye(2) / 5.0**2), r, rtol=1e-9)  # already above: kept
+    assert _cramer_rao_floor(r, np.diag([1.0 / 50.0**2, 0.0]))[1, 1] > 1e10  # a direction the readings cannot inform
+
+
+def test_particle_ins_gives_no_fix_on_a_plane_with_an_unknown_level():
+    """A map that is a plane (constant gradient): with the level between readings and map unknown, the readings
+    say nothing about the position (a shift is a level change). Its error layer is striped like a line survey's
+    (5 nT on north-south lines every 500 m, 40 nT between): the layer's shape is no evidence either (a likelihood
+    with a variance per particle rewarded the particles on the lines and issued confident along-track fixes).
+    No fix, whatever the seed."""
+    from matcher_scenarios import KIND_TF, latlon, nav_estimate
+
+    from magnav_ins.core.types import FieldReadings
+    from magnav_ins.maps.grid import GridMap
+
+    ax = np.arange(0.0, 3001.0, 50.0)
+    plane = 0.2 * ax[:, None] + 0.1 * ax[None, :]  # nT: 0.2 nT/m north, 0.1 nT/m east
+    fmap = GridMap(ax, ax, plane, kind=KIND_TF, frame="local", altitude_m=0.0, origin=ORIGIN, name="plane")
+    stripes = np.where(np.abs((ax + 250.0) % 500.0 - 250.0) < 60.0, 5.0, 40.0)  # small within 60 m of a line
+    fmap = fmap.with_error_layer(np.broadcast_to(stripes[None, :], plane.shape), 100.0, "test")
+    issued = []
+    for seed in range(5):
+        m = build_matcher({"kind": "particle_ins"})
+        rng = np.random.default_rng(seed)
+        v, p, P = np.array([0.0, 30.0]), np.array([1500.0, 600.0]), np.eye(2) * 150.0**2
+        st = m.initiate(nav_estimate(fmap, 0.0, p, v, P), rng)
+        for k in range(1, 41):
+            p = p + v
+            st = m.predict(st, nav_estimate(fmap, float(k), p, v, P))
+            z = fmap.value(*latlon(fmap, p[0], p[1])) + 30.0 + rng.normal(0.0, 1.0, 1)
+            st = m.update(st, FieldReadings(np.array([float(k)]), z, 1.0, KIND_TF), fmap)
+        issued.append(m.to_fix(st))
+    assert not any(f.available for f in issued), [f.reason for f in issued]
+    assert all("too little new information" in f.reason for f in issued)

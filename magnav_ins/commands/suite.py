@@ -16,11 +16,13 @@ from ..core.errors import ConfigError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    from ..studies.suite import GROUPS, RIO_SURVEY_DEFAULT
+    from ..studies.suite import DEFAULT_SEEDS, GROUPS, RIO_SURVEY_DEFAULT
 
     p = sub.add_parser("suite", help="the real-data integrity suite: every estimator over real survey lines")
     p.add_argument("--quick", action="store_true", help="the CI subset: 4 Osborne lines and 2 Rio lines at 65 m/s")
-    p.add_argument("--seeds", type=int, default=1, help="Monte Carlo runs per case (default 1)")
+    p.add_argument(
+        "--seeds", type=int, default=DEFAULT_SEEDS, help=f"Monte Carlo runs per case (default {DEFAULT_SEEDS})"
+    )
     p.add_argument("--jobs", type=int, default=1, help="local worker processes (default 1)")
     p.add_argument("--only", default=None, help=f"comma-separated groups ({', '.join(GROUPS)}; default all)")
     p.add_argument(

@@ -46,11 +46,13 @@ DEMO_SURVEY = "builtin:osborne-tie-lines"
 class DemoConfig:
     """Demo parameters (SI). ``line``: tie line id in :data:`DEMO_SURVEY`; ``speed_mps``: ground speed flown;
     ``duration_s``: fly only the first part of the line (None: all of it); ``grade``: IMU grade; ``imu_rate_hz``;
-    ``reading_interval_s``: magnetometer reading period; ``reading_sigma_nt``: 1-sigma of reading minus map used
-    by the matcher (the readings are real: this is the map-plus-sensor misfit the likelihood assumes, nT);
-    ``matcher``: matcher config (:func:`magnav_ins.aiding.matchers.registry.build_matcher`); ``fusion``: fuser
-    kind; ``window``, ``match_every``: readings per match window and between match attempts
-    (:class:`magnav_ins.pipeline.Pipeline`); ``init``: 1-sigma initial INS errors; ``seed``.
+    ``reading_interval_s``: magnetometer reading period; ``reading_sigma_nt``: the magnetometer's noise 1-sigma
+    (nT; the readings are real, their noise is below 1 nT; the map's error comes from the map's error layer);
+    ``matcher``: matcher config (:func:`magnav_ins.aiding.matchers.registry.build_matcher`; its defaults, no
+    option tuned: ``particle_ins``, the best estimator on the Osborne groups of the real-data suite,
+    :mod:`.suite`); ``fusion``: fuser kind; ``window``, ``match_every``: readings per match window and between
+    match attempts (:class:`magnav_ins.pipeline.Pipeline`; a fix attempt every 30 s, as the suite asks a recursive
+    matcher); ``init``: 1-sigma initial INS errors; ``seed``.
     ``waypoint_tolerance_m``: how far the flown polyline may deviate from the surveyed track (RDP simplification
     in :func:`~magnav_ins.ins.simulate.survey_line`)."""
 
@@ -60,20 +62,11 @@ class DemoConfig:
     grade: str = "tactical"
     imu_rate_hz: float = 50.0
     reading_interval_s: float = 0.5
-    reading_sigma_nt: float = 60.0
-    matcher: dict[str, Any] = field(
-        default_factory=lambda: {
-            "kind": "ml",
-            "demean": True,
-            "min_variability": 0.3,
-            "window_sigma": 4.0,
-            "min_fix_sigma_m": 80.0,  # the tie line differs from the map by 20-45 nT with ~200 m correlation length
-            "max_fix_sigma_m": 500.0,
-        }
-    )
+    reading_sigma_nt: float = 1.0
+    matcher: dict[str, Any] = field(default_factory=lambda: {"kind": "particle_ins"})
     fusion: str = "ukf"
-    window: int = 120
-    match_every: int = 10
+    window: int = 1
+    match_every: int = 60
     init: InitConfig = field(default_factory=InitConfig)
     seed: int = 1990
     waypoint_tolerance_m: float = 25.0
