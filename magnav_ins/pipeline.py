@@ -293,11 +293,15 @@ class Pipeline:
                 np.array([x.cov_ne for x in s]),
                 np.array([x.v_ne for x in s]),
             )
-            if self._batch:
-                fixes, cov = self.matcher.match_batch(win, self.fmap)
-                self._apply_batch(fixes, cov, est)
-            else:
-                self._apply_fix(self.matcher.match(win, self.fmap), est)
+            self._match(win, est)
+
+    def _match(self, win: MatchWindow, est: NavEstimate) -> None:
+        """Match a full window of a batch matcher and apply the fix(es) (a subclass may run it elsewhere)."""
+        if self._batch:
+            fixes, cov = self.matcher.match_batch(win, self.fmap)
+            self._apply_batch(fixes, cov, est)
+        else:
+            self._apply_fix(self.matcher.match(win, self.fmap), est)
 
     def _apply_batch(self, fixes: list[Fix], cov: FloatArray, before: NavEstimate) -> None:
         """A retrodiction batch: every fix is kept; the available ones go to ``fuser.correct_batch`` with their

@@ -118,3 +118,25 @@ def test_gauss_markov_on_irregular_times_keeps_its_statistics():
     lag = t[-1] - t[0]
     rho = np.mean(b[:, 0] * b[:, -1]) / np.mean(b[:, 0] ** 2)
     assert rho == pytest.approx(math.exp(-lag / g.gyro_bias_tau), abs=0.05)
+
+
+def test_grade_from_a_json_table_replaces_only_the_fields_given():
+    import json
+
+    base = get_grade("navigation")
+    g = get_grade(
+        json.dumps({"base": "Navigation", "arw": 4.2e-6, "vrw": [6e-5, 6e-5, 7e-5], "accel_scale_sigma": 1e-3})
+    )
+    assert g.arw == (4.2e-6,) * 3 and g.vrw == (6e-5, 6e-5, 7e-5) and g.accel_scale_sigma == 1e-3
+    assert g.gyro_bias_sigma == base.gyro_bias_sigma and g.rate_hz == base.rate_hz
+    assert g.name == "navigation+custom"
+    for bad, words in (
+        ('{"arw": 1}', "'base'"),
+        ('{"base": "navigation", "arv": 1}', "unknown field 'arv'"),
+        ('{"base": "navigation", "vrw": [1, 2]}', "one or three numbers"),
+        ('{"base": "navigation", "arw": -1}', "non-negative"),
+        ('{"base": "mems"}', "unknown IMU grade"),
+        ("{base: 1}", "not a JSON table"),
+    ):
+        with pytest.raises(ConfigError, match=words):
+            get_grade(bad)

@@ -196,3 +196,28 @@ def test_signing_enabled_drops_the_unsigned_autopilot(osborne):
     assert st.rejected_unsigned == st.rejected_signature and st.bad_data == 0
     bridge.link.close()
     ap.close()
+
+
+def test_magnetometer_scale_logged_and_announced_once(osborne, caplog):
+    """The emulator sends ArduPilot's old milligauss x 1000 scale in every HIGHRES_IMU (about 150 of them here): the
+    unit is logged once and announced to the pilot once (STATUSTEXT), not per sample."""
+    import logging
+
+    flight = flight_over_map(
+        osborne, start=START, heading=0.0, speed_mps=0.0, duration_s=10.0, rate_hz=50.0, altitude_m=400.0, seed=3
+    )
+    port = free_udp_port()
+    bridge = _bridge(port, osborne, flight.date)
+    ap = MavLink(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1)
+    with caplog.at_level(logging.INFO, logger="magnav_ins.mavlink"):
+        with AutopilotEmulator(ap, flight.truth, flight.imu, flight.mag_b_nt) as emu:
+            bridge.run(duration_s=4.0)
+            time.sleep(0.3)
+    logged = [r.getMessage() for r in caplog.records if "HIGHRES_IMU magnetometer" in r.getMessage()]
+    said = [x for x in emu.record.statustexts if "magnetometer" in x]
+    assert bridge.health.imu_samples > 100
+    assert len(logged) == 1 and "milligauss*1000" in logged[0], logged
+    assert said == ["magnav: magnetometer in mG x 1000"], emu.record.statustexts
+    assert bridge.health.mag_unit == "milligauss*1000"
+    bridge.link.close()
+    ap.close()

@@ -98,6 +98,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="do not use the autopilot's attitude (ATTITUDE: its accelerometers and compass) to aid the INS",
     )
+    p.add_argument(
+        "--imu-world",
+        default="earth",
+        choices=["earth", "flat"],
+        help="earth (default): a real IMU; flat: the autopilot is a simulator whose world is flat and does not rotate "
+        "(ArduPilot SITL): add the Earth's rate, transport rate and Coriolis terms to its samples",
+    )
     p.add_argument("--signing-key", help="MAVLink 2 signing key file (32 bytes, 64 hex characters or a passphrase)")
     p.add_argument("--sysid", type=int, default=1, help="our system id (default 1, the vehicle's)")
     p.add_argument("--autopilot-sysid", type=int, default=1)
@@ -243,6 +250,7 @@ def run(args: argparse.Namespace) -> int:
         ekf_source_set=args.ekf_source_set,
         align=not args.no_align,
         attitude_aid=not args.no_attitude_aid,
+        imu_world=args.imu_world,
     )
     from ..core.atomic import check_output_file
 
@@ -265,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
         return make_online_pipeline(
             nav0, sigma_m, fmap, grade=args.grade, matcher=matcher, fusion=args.fusion,
             reading_sigma=args.reading_sigma, window=args.window, match_every=args.match_every,
-            attitude_sigma_rad=attitude_sigma,
+            attitude_sigma_rad=attitude_sigma, background_matching=True,
         )  # fmt: skip
 
     logging.info("warming up the compiled kernels (the first run after an install compiles them)")
@@ -300,6 +308,13 @@ def run(args: argparse.Namespace) -> int:
     stats = link.stats.as_dict()
     print(summary_line(health, stats), flush=True)
     if args.summary_json:
-        doc = {"stopped_by": stop["signal"] or "duration or Ctrl-C", **health.as_dict(), "link": stats}
+        lat_ms = np.array(bridge.latencies_s) * 1e3
+        doc = {
+            "stopped_by": stop["signal"] or "duration or Ctrl-C", **health.as_dict(), "link": stats,
+            "latency_ms": {
+                k: round(float(f(lat_ms)), 2) if len(lat_ms) else None
+                for k, f in (("median", np.median), ("p95", lambda x: np.percentile(x, 95)), ("max", np.max))
+            },
+        }  # fmt: skip
         write_text_atomic(args.summary_json, json.dumps(doc, indent=2, default=float))
     return 0

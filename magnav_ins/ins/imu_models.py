@@ -260,8 +260,15 @@ GRADES: dict[str, ImuGrade] = {
 
 
 def get_grade(name: str) -> ImuGrade:
-    """The preset called ``name`` (case-insensitive); :class:`ConfigError` naming it and the valid names otherwise."""
-    key = str(name).strip().lower()
+    """The preset called ``name`` (case-insensitive); :class:`ConfigError` naming it and the valid names otherwise.
+
+    ``name`` may also be a JSON table: a preset (``"base"``) with some fields replaced, SI as in :class:`ImuGrade`
+    (a per-axis field takes one number for all axes or three), e.g. an IMU's noise measured at rest:
+    ``{"base": "navigation", "arw": 4.1e-6, "vrw": 6.2e-5, "accel_scale_sigma": 0.0011}``."""
+    text = str(name).strip()
+    if text.startswith("{"):
+        return _grade_from_table(text)
+    key = text.lower()
     if key not in GRADES:
         raise ConfigError(f"unknown IMU grade {name!r}; expected one of: {', '.join(GRADES)}")
     return GRADES[key]
@@ -399,3 +406,36 @@ def corrupt(
     (from :func:`draw_errors`) to fix the per-run constants."""
     gyro, accel, trace = corrupt_arrays(imu.t, imu.gyro_b, imu.accel_b, grade, rng, errors)
     return ImuBatch(imu.t, gyro, accel), trace
+
+
+def _grade_from_table(text: str) -> ImuGrade:
+    import json
+
+    try:
+        table = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"IMU grade {text!r}: not a JSON table ({exc.msg})") from None
+    if not isinstance(table, dict) or "base" not in table:
+        raise ConfigError(f"IMU grade {text!r}: expected a JSON table with a 'base' preset")
+    base = get_grade(str(table.pop("base")))
+    names = {f.name: f for f in fields(ImuGrade)}
+    changes: dict[str, object] = {"name": f"{base.name}+custom", "source": f"{base.source}; changed: {table}"}
+    for key, value in table.items():
+        if key not in names or key in ("name", "source"):
+            raise ConfigError(f"IMU grade table: unknown field {key!r}; expected some of {', '.join(names)}")
+        per_axis = isinstance(getattr(base, key), tuple)
+        try:
+            if per_axis:
+                vals = [float(v) for v in value] if isinstance(value, list) else [float(value)]
+                if len(vals) not in (1, 3):
+                    raise ValueError
+                changes[key] = _v(*vals) if len(vals) == 3 else _v(vals[0])
+            else:
+                changes[key] = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"IMU grade table: {key} = {value!r}: expected {'one or three numbers' if per_axis else 'a number'}"
+            ) from None
+    from dataclasses import replace
+
+    return replace(base, **changes)

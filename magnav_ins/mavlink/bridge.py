@@ -1,8 +1,10 @@
 """The companion-computer bridge: autopilot IMU + magnetometer in, fused position out, over MAVLink.
 
-One event loop (:meth:`Bridge.poll`), no threads: decode what arrived, feed IMU samples to the online pipeline
-(INS + map matcher + fuser, :mod:`.online`), magnetometer readings as field readings and, while the autopilot's own
-GNSS is healthy, its fixes (:mod:`.gnss`); at the output rate send the fused position in the configured form.
+One event loop (:meth:`Bridge.poll`): decode what arrived, feed IMU samples to the online pipeline (INS + map matcher
++ fuser, :mod:`.online`; built with ``background_matching`` the matcher's scans run in one worker thread beside the
+loop), magnetometer readings as field readings and, while the autopilot's own GNSS is healthy, its fixes
+(:mod:`.gnss`); at the output rate send the fused position in the configured form. ``imu_world="flat"`` adapts a
+simulator's samples to the rotating Earth first (:mod:`.flat_world`).
 MAVLink encoding lives in :mod:`.link`; this module speaks SI.
 
 Life of a flight (the state is announced by STATUSTEXT once per change, rate-limited, and logged):
@@ -55,7 +57,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -64,6 +66,7 @@ from ..core.frames import C_nb_from_q, geodetic_to_ned, horizontal_error_m, q_nb
 from ..core.types import Fix, NavEstimate, NavState
 from ..ins.strapdown import SAMPLE_TYPES
 from .baro import BaroHeight, hold_height
+from .flat_world import earth_imu
 from .gnss import GnssMonitor
 from .ground import GroundAlignment, StillDetector, normal_gravity_mps2
 from .link import (
@@ -90,6 +93,7 @@ log = logging.getLogger(__name__)
 OUTPUT_KINDS = ("gps_input", "odometry", "global_position_sensor")
 SAMPLE_TYPE_CHOICES = ("auto", *SAMPLE_TYPES)
 SEND_WHILE_GNSS = ("auto", "yes", "no")
+IMU_WORLDS = ("earth", "flat")
 #: protection level per horizontal 1-sigma at integrity risk 1e-3 for a circular 2-D Gaussian: sqrt(-2 ln 1e-3)
 HPL_PER_SIGMA = math.sqrt(-2.0 * math.log(1e-3))
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
@@ -103,6 +107,10 @@ _SEVERITY = {
     "degraded": "warning",
     "link_lost": "warning",
 }
+
+
+#: how the STATUSTEXT names the HIGHRES_IMU magnetometer unit the link detected (:func:`.link.highres_mag_to_nt`)
+_MAG_UNIT_TEXT = {"gauss": "gauss", "milligauss": "mG", "milligauss*1000": "mG x 1000"}
 
 
 class OnlinePipelineLike(Protocol):
@@ -165,6 +173,7 @@ class BridgeConfig:
     attitude_interval_s: float = 1.0
     attitude_sigma_rad: tuple[float, float, float] = (0.01, 0.01, 0.035)  # tilt about N, E; heading
     statustext_interval_s: float = 2.0
+    imu_world: str = "earth"  # "flat": the autopilot is a simulator with a flat, non-rotating world (.flat_world)
 
     def __post_init__(self) -> None:
         from ..core.errors import ConfigError
@@ -184,6 +193,8 @@ class BridgeConfig:
             raise ConfigError(f"global position source {self.global_position_source!r}: expected magnetic or terrain")
         if self.sample_type not in SAMPLE_TYPE_CHOICES:
             raise ConfigError(f"--sample-type {self.sample_type!r}: expected one of {', '.join(SAMPLE_TYPE_CHOICES)}")
+        if self.imu_world not in IMU_WORLDS:
+            raise ConfigError(f"--imu-world {self.imu_world!r}: expected one of {', '.join(IMU_WORLDS)}")
         if self.send_while_gnss not in SEND_WHILE_GNSS:
             raise ConfigError(
                 f"--send-while-gnss {self.send_while_gnss!r}: expected one of {', '.join(SEND_WHILE_GNSS)}"
@@ -425,6 +436,13 @@ class Bridge:
         h.gnss_losses = self._gnss.losses
         if self._pipeline is not None:
             self._count_fixes()
+            self._close_pipeline()
+
+    def _close_pipeline(self) -> None:
+        """Free what the pipeline holds besides memory (its background matcher thread, :mod:`.online`)."""
+        close = getattr(self._pipeline, "close", None)
+        if close is not None:
+            close()
 
     def poll(self, timeout: float = 0.0) -> None:
         """Handle everything that arrived, then the periodic tasks (heartbeat, streams, GNSS, outputs, link)."""
@@ -644,6 +662,10 @@ class Bridge:
     # -- IMU -----------------------------------------------------------------------------------------------
     def _on_imu(self, m: ImuMessage) -> None:
         h = self.health
+        unit = getattr(self.link, "mag_unit", None)
+        if unit and unit != h.mag_unit:  # the link logs it once per change; the pilot hears it once too
+            h.mag_unit = unit
+            self._say.say("mag", "info", f"magnav: magnetometer in {_MAG_UNIT_TEXT.get(unit, unit)}")
         if m.source != "HIGHRES_IMU" and not self._warned_resolution:
             log.warning(
                 "%s carries 1 mrad/s and 1 mG resolution, far too coarse for a tactical INS; "
@@ -664,6 +686,10 @@ class Bridge:
             else:
                 h.imu_out_of_order += 1
             return
+        if self.config.imu_world == "flat":
+            m = self._earth_sample(m)
+            if m is None:
+                return
         self._imu_seen_at = self._clock()
         h.imu_samples += 1
         h.last_imu_t = m.t
@@ -690,6 +716,24 @@ class Bridge:
             landed = self._landed_now() == "on_ground"
             if landed and not self._moving() and self._still.still(self._g_mps2):
                 self._enter_alignment()
+
+    def _earth_sample(self, m: ImuMessage) -> ImuMessage | None:
+        """A simulator's flat-world sample as a WGS84-Earth IMU would give it (:mod:`.flat_world`), at the INS's
+        attitude, velocity and position (before the INS runs: the held position at rest, the autopilot's attitude).
+        None while no position is known (such a sample is not used anyway)."""
+        p = self._pipeline
+        if p is not None:
+            nav = p.nav_now() if hasattr(p, "nav_now") else p.estimate().nav
+            q, v, lat, hgt = nav.q_nb, nav.v_n, nav.lat, nav.h
+        else:
+            held = self._held if self._held is not None else self._held_position()
+            if held is None:
+                return None
+            att = self._last_attitude
+            q = q_nb_from_euler(att[0].roll, att[0].pitch, att[0].yaw) if att is not None else np.array([0, 0, 0, 1.0])
+            v, lat, hgt = np.zeros(3), held.lat, held.h
+        gyro, accel = earth_imu(m.gyro_b, m.accel_b, q, v, lat, hgt)
+        return replace(m, gyro_b=gyro, accel_b=accel)
 
     def _reading(self, m: ImuMessage) -> None:
         if (
@@ -789,6 +833,7 @@ class Bridge:
         if hasattr(self._pipeline, "imu_bias"):
             self._carried_bias = self._pipeline.imu_bias
         self._count_fixes()
+        self._close_pipeline()
         self._pipeline = None
         self._aligner.reset()
         self.health.alignments += 1
@@ -919,6 +964,10 @@ class Bridge:
         self.health.map_fixes_issued += sum(1 for f in fixes[n0:] if f.available)
         self.health.map_fixes_accepted += sum(1 for x in inns[i0:] if x.accepted)
         for f in fixes[n0:]:
+            if f.available:
+                s = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(f.cov_ne, float)), 0.0, None))
+                log.info("map fix at t=%.1f s: %.7f, %.7f, sigma %.0f / %.0f m", f.t, math.degrees(f.lat),
+                         math.degrees(f.lon), s[0], s[-1])  # fmt: skip
             if not f.available:
                 key = f.reason.split(":")[0] or "unspecified"
                 self.health.no_fix_reasons[key] = self.health.no_fix_reasons.get(key, 0) + 1
@@ -937,6 +986,7 @@ class Bridge:
         nav = est.nav
         bias = self._pipeline.imu_bias if hasattr(self._pipeline, "imu_bias") else None
         self._count_fixes()
+        self._close_pipeline()
         pipe = self.make_pipeline(NavState(t, nav.lat, nav.lon, nav.h, nav.v_n, nav.q_nb), sigma)
         if bias is not None and hasattr(pipe, "set_static_bias"):
             pipe.set_static_bias(*bias)
@@ -1088,6 +1138,7 @@ class Bridge:
 
     def _send_output(self) -> None:
         c = self.config
+        self._count_fixes()  # counts (and logs) the map fixes as they come
         s = self._solution()
         if s is None:
             self._no_fix()

@@ -104,6 +104,7 @@ class AutopilotEmulator:
         self._drop_until = -np.inf
         self._pressure_pause_s = 0.0  # pending request: send no pressure for this many seconds
         self._no_pressure_until = -np.inf
+        self._no_pressure_window = (np.inf, np.inf)  # flight times (s) without pressure, set ahead
         self.pressure_rate_hz = pressure_rate_hz
         self.pressure_noise_pa = float(pressure_noise_pa)
         self._rng = np.random.default_rng(seed)
@@ -231,7 +232,8 @@ class AutopilotEmulator:
                     if self._pressure_pause_s > 0.0:
                         self._no_pressure_until = ts + self._pressure_pause_s
                         self._pressure_pause_s = 0.0
-                    if ts >= self._no_pressure_until:
+                    w0, w1 = self._no_pressure_window
+                    if ts >= self._no_pressure_until and not (w0 <= ts < w1):
                         p = self._pressure_pa[k] + self._rng.normal(0.0, self.pressure_noise_pa)
                         assert self._temperature_c is not None
                         self.link.send_scaled_pressure(ts, float(p), float(self._temperature_c[k]))
@@ -249,9 +251,14 @@ class AutopilotEmulator:
         """Lose the next ``duration_s`` seconds of IMU samples (the flight goes on; the bridge sees a gap)."""
         self._dropout_s = float(duration_s)
 
-    def pause_pressure(self, duration_s: float) -> None:
-        """Send no SCALED_PRESSURE for the next ``duration_s`` seconds of flight (the IMU goes on)."""
-        self._pressure_pause_s = float(duration_s)
+    def pause_pressure(self, duration_s: float, at_s: float | None = None) -> None:
+        """Send no SCALED_PRESSURE for ``duration_s`` seconds of flight (the IMU goes on): from now, or from the
+        flight time ``at_s`` (s, the autopilot clock; set ahead, so that where the outage falls does not depend on
+        how fast the receiver keeps up)."""
+        if at_s is None:
+            self._pressure_pause_s = float(duration_s)
+        else:
+            self._no_pressure_window = (float(at_s), float(at_s) + float(duration_s))
 
     def reboot(self, silence_s: float = 1.5) -> None:
         """Reboot like ArduPilot: ``silence_s`` of nothing on the link, then the clock restarts near 1 s and only

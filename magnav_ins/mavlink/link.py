@@ -15,6 +15,7 @@ import logging
 import math
 import os
 import select
+import socket
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -388,6 +389,27 @@ def load_signing_key(path: str | os.PathLike[str]) -> bytes:
     return hashlib.sha256(text.encode()).digest()
 
 
+#: UDP receive buffer asked for, bytes: a companion computer's loop that stalls (a busy CPU) should lose nothing of
+#: 100-400 Hz HIGHRES_IMU for several seconds; Linux caps it at ``net.core.rmem_max`` (raise that if the log says so)
+UDP_RECEIVE_BUFFER = 4 * 1024 * 1024
+
+
+def _grow_receive_buffer(conn) -> None:  # noqa: ANN001
+    sock = getattr(conn, "port", None)
+    if not isinstance(sock, socket.socket) or sock.type != socket.SOCK_DGRAM:
+        return
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RECEIVE_BUFFER)
+        got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) // 2  # Linux reports twice what it books
+    except OSError as exc:
+        log.info("UDP receive buffer left at the default (%s)", exc)
+        return
+    if got < UDP_RECEIVE_BUFFER:
+        log.info(
+            "UDP receive buffer %d kB (asked %d kB; net.core.rmem_max caps it)", got // 1024, UDP_RECEIVE_BUFFER // 1024
+        )
+
+
 class MavLink:
     """A MAVLink 2 connection (any pymavlink URL: ``udpin:HOST:PORT``, ``udpout:``, ``tcp:``, ``/dev/ttyUSB0``).
 
@@ -437,6 +459,7 @@ class MavLink:
             )
         except Exception as exc:  # pymavlink raises bare OSError/SerialException/ValueError
             raise LinkError(f"cannot open MAVLink connection {self.url!r}: {exc}") from exc
+        _grow_receive_buffer(conn)
         if self._signing_key is not None:
             unsigned_ok: Callable[[object, int], bool] | None = (
                 (lambda _mav, _id: True) if self._accept_unsigned else (lambda _mav, _id: False)

@@ -13,23 +13,35 @@ recording, so that a replay reproduces what the companion computer would have co
 * a static IMU correction (gyro and accelerometer biases, body FRD) measured before the run, e.g. by the bridge's
   ground alignment, subtracted from every sample; the fuser estimates what is left;
 * external position fixes (the autopilot's own GNSS while it is healthy) through
-  :meth:`~magnav_ins.pipeline.Pipeline.push_fix`.
+  :meth:`~magnav_ins.pipeline.Pipeline.push_fix`;
+* with ``background_matching`` (the live bridge) a batch matcher's scan runs in one worker thread while the IMU
+  samples keep coming: a scan takes 0.1-1 s of CPU (more on a loaded companion computer), which would otherwise
+  stop the bridge's loop, its outputs and its socket reads for that long. The fix is applied when the scan is
+  done, at its own time (the UKF rewinds to it and re-propagates, ``buffer_s``); the stored window is shifted by the
+  correction applied, so it stays one rigid INS track. One scan at a time: a window due while one is running waits
+  for the next match time (counted in ``matches_deferred``). The replay and the offline runs stay synchronous.
 
 Units: SI, body FRD, NED, as everywhere in the package.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
 from ..core.errors import ConfigError
-from ..core.types import Innovation, NavEstimate, NavState
+from ..core.frames import latlon_to_meters, meters_to_latlon
+from ..core.protocols import MatchWindow
+from ..core.types import Fix, Innovation, NavEstimate, NavState
 from ..ins.strapdown import SampleMeans
 from ..pipeline import Pipeline
+
+log = logging.getLogger(__name__)
 
 #: IMU sample type the readers and the bridge assume when told ``auto``: ArduPilot's HIGHRES_IMU carries the
 #: latest filtered sample (instantaneous); PX4's HIGHRES_IMU and ``sensor_combined`` carry rates averaged over
@@ -54,9 +66,16 @@ class OnlinePipeline(Pipeline):
         sample_type: str = "mean",
         gyro_bias_b: np.ndarray | None = None,
         accel_bias_b: np.ndarray | None = None,
+        background_matching: bool = False,
         **options: Any,
     ) -> None:
         super().__init__(fuser, matcher, fmap, **options)
+        self.background_matching = bool(background_matching)
+        self._executor: ThreadPoolExecutor | None = None
+        self._job: tuple[Future, float] | None = None  # the scan running, and when it was started (IMU time)
+        self.matches_deferred = 0
+        #: IMU-clock seconds from the end of each background scan's window to its fix being applied
+        self.match_delays_s: list[float] = []
         self._means = SampleMeans(sample_type)
         self.sample_type = sample_type
         self._gyro_bias = np.zeros(3)
@@ -106,6 +125,12 @@ class OnlinePipeline(Pipeline):
             self._attitudes.clear()  # the INS attitudes before the correction are not the INS's any more
         return inn
 
+    def nav_now(self) -> NavState:
+        """The INS state now without propagating the covariance (:meth:`estimate` does): the UKF's and the free
+        INS's stepper state, else the estimate's."""
+        stepper = getattr(self.fuser, "_stepper", None)
+        return stepper.nav if stepper is not None else self.estimate().nav
+
     def forget_last_sample(self) -> None:
         """After a gap: the next ``instantaneous`` sample has no previous one to average with."""
         self._means.reset()
@@ -113,6 +138,8 @@ class OnlinePipeline(Pipeline):
     def push_imu(self, t: float, gyro_b: np.ndarray, accel_b: np.ndarray) -> None:
         """One IMU sample of this pipeline's sample type at ``t`` (s): rad/s and m/s^2 (rad and m/s for
         increments), body FRD."""
+        if self._job is not None and self._job[0].done():
+            self._collect()
         w, f = self._means.means(t, gyro_b, accel_b)
         super().push_imu(t, w - self._gyro_bias, f - self._accel_bias)
         if self._track_attitude:
@@ -132,6 +159,8 @@ class OnlinePipeline(Pipeline):
         """Several IMU samples of this pipeline's sample type (``t`` (m,) s; (m,3) rad/s and m/s^2, body FRD):
         the same as :meth:`push_imu` for each in turn, in one fuser call where possible
         (:meth:`~magnav_ins.pipeline.Pipeline.push_imu_batch`, whose ``altitude_hold`` and ``attitudes`` it takes)."""
+        if self._job is not None and self._job[0].done():
+            self._collect()
         t = np.asarray(t, dtype=float).reshape(-1)
         if len(t) == 0:
             return np.zeros((0, 4)) if attitudes else None
@@ -154,6 +183,55 @@ class OnlinePipeline(Pipeline):
                 self._attitudes.append((float(t[k]), q[k].copy()))
         return q if attitudes else None
 
+    # -- background matching -------------------------------------------------------------------------------
+    def _match(self, win: MatchWindow, est: NavEstimate) -> None:
+        if not self.background_matching or self._batch:
+            super()._match(win, est)
+            return
+        if self._job is not None:
+            self.matches_deferred += 1
+            self._n_readings -= 1  # try again at the next reading
+            return
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="magnav-matcher")
+        self._job = (self._executor.submit(self.matcher.match, win, self.fmap), float(est.nav.t))
+
+    def _collect(self) -> None:
+        """Apply the finished scan's fix at its own time and shift the stored window by the correction."""
+        assert self._job is not None
+        future, t_start = self._job
+        self._job = None
+        try:
+            fix = future.result()
+        except Exception as exc:  # noqa: BLE001 - a matcher failure is a "no fix", not a stopped bridge
+            log.warning("matcher failed: %s", exc)
+            fix = Fix.no_fix(t_start, f"matcher error: {exc}", getattr(self.matcher, "name", ""))
+        before = self.fuser.estimate()
+        self.match_delays_s.append(float(before.nav.t) - float(fix.t))
+        self.fixes.append(fix)
+        inn = self.fuser.correct(fix)
+        self.innovations.append(inn)
+        if inn.accepted:
+            after = self.fuser.estimate().nav
+            dn, de = latlon_to_meters(after.lat - before.nav.lat, after.lon - before.nav.lon, before.nav.lat)
+            for x in self._stored:  # the whole window is one INS track, before the correction
+                dlat, dlon = meters_to_latlon(float(dn), float(de), x.lat, x.h)
+                x.lat, x.lon = x.lat + float(dlat), x.lon + float(dlon)
+
+    def finish_matching(self, timeout_s: float | None = None) -> None:
+        """Wait for a running scan and apply its fix (tests, a clean stop); then free the worker thread."""
+        if self._job is not None:
+            self._job[0].result(timeout=timeout_s)
+            self._collect()
+        self.close()
+
+    def close(self) -> None:
+        """Free the worker thread (a scan still running finishes and is dropped)."""
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)
+            self._executor = None
+        self._job = None
+
 
 def make_online_pipeline(
     nav0: NavState,
@@ -174,6 +252,7 @@ def make_online_pipeline(
     accel_bias_b: np.ndarray | None = None,
     fusion_options: dict[str, Any] | None = None,
     rng: np.random.Generator | None = None,
+    background_matching: bool = False,
 ) -> OnlinePipeline:
     """The online pipeline of the bridge and the replay, starting from ``nav0``.
 
@@ -187,7 +266,8 @@ def make_online_pipeline(
     (:class:`~magnav_ins.pipeline.Pipeline`); ``velocity_sigma_mps`` (m/s) and ``attitude_sigma_rad`` (roll, pitch,
     yaw, rad): initial 1-sigmas; ``altitude_hold``: clamp the INS height to ``nav0.h`` (the free vertical channel
     diverges in minutes); the bridge and the replay move the clamp to the barometric height when pressure arrives
-    (:func:`.baro.hold_height`); ``sample_type``, ``gyro_bias_b``, ``accel_bias_b``: :class:`OnlinePipeline`.
+    (:func:`.baro.hold_height`); ``sample_type``, ``gyro_bias_b``, ``accel_bias_b``, ``background_matching``:
+    :class:`OnlinePipeline`.
     """
     from ..aiding.fusion import ImuNoise, make_fuser
     from ..aiding.matchers.registry import build_matcher
@@ -223,4 +303,5 @@ def make_online_pipeline(
         reading_kind=kind,
         height_aid=None,
         rng=rng if rng is not None else np.random.default_rng(0),
+        background_matching=background_matching,
     )

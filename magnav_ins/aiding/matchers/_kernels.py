@@ -28,7 +28,7 @@ def grid_loglik(values: FloatArray, z: FloatArray, s2: float) -> FloatArray:
     return out
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)
 def grid_scan1(values: FloatArray, z: FloatArray, s2: float, ic: int, jc: int) -> tuple[FloatArray, int, float]:
     """One pass for a single reading: log-likelihood grid (as :func:`grid_loglik`), the flat index of its maximum,
     and the feature variability about node ``(ic, jc)`` (as :func:`grid_variability`, which it calls when the
@@ -180,7 +180,7 @@ def grid_gradient_rms(values: FloatArray, dn: float, de: float) -> float:
     return np.sqrt(sn / cn + se / ce)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, nogil=True)  # the bridge scans in a worker thread: let the IMU loop run meanwhile
 def section_loglik(
     values: FloatArray,
     y0: float,

@@ -1,0 +1,317 @@
+"""A GNSS-denied square flown by ArduCopter SITL on the bridge's position: the bench's and the end-to-end test's flight.
+
+The world: the Osborne survey gridded at 50 m from EVERY line, tie lines included (:func:`.sitl.osborne_world`),
+loaded into the patched SITL's magnetometer; the bridge matches against ``builtin:osborne-magnetic`` (flight lines
+only, 100 m), so the map is never the world. The flight (:func:`fly_square`): the bridge starts (``magnav-ins
+bridge``, the real command, as a process on SITL serial 1), the SITL starts, the copter arms in GUIDED and takes off on
+its own GNSS (SITL GPS1), climbs to ``altitude_m``, heads out along the first side of a square (north, then east,
+south, west; sides ``side_m``), the GNSS is denied ``deny_after_s`` after take-off (``SIM_GPS1_ENABLE=0``), it flies
+the rest of the square on the bridge's position alone, returns to the start point and lands (LAND).
+
+* ``output="gps_input"``: GPS_INPUT to GPS2 (``GPS2_TYPE=14``; ``GPS_AUTO_SWITCH=1`` makes it primary when GPS1
+  fails; the bridge sends it all along, fed by GPS1 while that is healthy);
+* ``output="odometry"``: ODOMETRY (``VISO_TYPE=1``, EKF3 source set 2 = ExternalNav; the bridge asks for set 2 when
+  the GNSS is lost).
+
+Truth is SITL's SIM_STATE; the autopilot's estimate its GLOBAL_POSITION_INT; both recorded by a
+:class:`.sitl.GroundStation` on serial 0. The SITL's own simulated gyro drift (``SIM_DRIFT_SPEED``, a triangle wave
+reaching 0.25 deg/s after 5 minutes) is set to 0 unless ``sim_drift``: it tests ArduPilot's EKF, far outside the
+in-run stability of any MEMS gyro. Everything started is stopped however the flight ends; the work directory is a
+fresh temporary one, removed unless ``keep``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..core.frames import horizontal_error_m, meters_to_latlon
+from .sitl import GroundStation, Sitl, free_udp_port, osborne_world, sitl_dir
+
+log = logging.getLogger(__name__)
+
+#: autopilot texts that count as a failsafe or an EKF warning (lower case), and those that do not
+FAILSAFE_WORDS = ("failsafe", "variance", "glitch", "ekf3 lane switch", "ekf primary", "gps 1: not healthy",
+                  "bad", "compass error", "yaw reset", "emergency", "crash", "lost")  # fmt: skip
+IGNORED = ("prearm", "arming", "ekf3 imu0 is using", "ekf3 imu1 is using", "magnav:")
+
+#: the SITL's IMU as ``bench/sitl_imu_noise.py`` measured it at rest (20 s, 100 Hz HIGHRES_IMU): white noise 4.1e-6
+#: rad/sqrt(s) and 6.2e-5 m/s/sqrt(s), accelerometer offsets 1.0e-3 m/s^2 (copter.parm's INS_ACCOFFS) and scale
+#: +0.11 % (INS_ACCSCAL), no gyro bias (the Earth's rate is put back by --imu-world flat; what the ground alignment
+#: leaves is its noise over 40 s, 7e-7 rad/s); the rest of the "navigation" preset (Honeywell H764-G) is smaller
+SITL_GRADE = json.dumps(
+    {"base": "navigation", "arw": 4.2e-6, "vrw": 6.3e-5, "gyro_turn_on_sigma": 1e-6, "accel_turn_on_sigma": 1e-3,
+     "accel_scale_sigma": 0.0011}
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FlightPlan:
+    """What to fly (module docstring). ``home`` (lat, lon) deg, ``home_alt_m`` MSL; ``altitude_m`` above home;
+    ``speed_mps`` the GUIDED cruise speed; ``deny_after_s`` after take-off; ``grade`` the IMU grade the bridge's filter
+    assumes (None: the bridge's default); ``bridge_args`` more ``magnav-ins bridge`` arguments; ``time_limit_s``: stop
+    the square (and land) when the flight has lasted that long (None: no limit)."""
+
+    home: tuple[float, float] = (-21.94, 140.76)
+    home_alt_m: float = 380.0
+    side_m: float = 2000.0
+    altitude_m: float = 80.0
+    speed_mps: float = 15.0
+    deny_after_s: float = 60.0
+    output: str = "gps_input"
+    grade: str | None = None
+    speedup: float = 1.0
+    sim_drift: bool = False
+    bridge_args: tuple[str, ...] = ()
+    keep: bool = False
+    time_limit_s: float | None = None
+    corners: tuple[tuple[float, float], ...] = field(default=((1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.0, 0.0)))
+
+
+def sitl_params(output: str, speed_mps: float, sim_drift: bool) -> dict[str, float]:
+    """The parameters the flight adds to the SITL's ``copter.parm`` (and why)."""
+    p: dict[str, float] = {
+        "SERIAL1_PROTOCOL": 2,  # MAVLink 2 to the companion
+        "SR1_EXTRA1": 0,  # the bridge asks for what it needs (SET_MESSAGE_INTERVAL)
+        "WPNAV_SPEED": speed_mps * 100.0,
+        "WPNAV_ACCEL": 250.0,
+        # SITL's gyros leave out the Earth's rotation (a flat, non-rotating world): with a fixed heading the missing
+        # 7e-5 rad/s is a constant body-frame bias that the bridge's ground alignment measures; turning the vehicle
+        # at every corner would make it a bias that rotates with the heading
+        "WP_YAW_BEHAVIOR": 0,
+        "RTL_ALT": 0.0,  # return at the current height
+        "FENCE_ENABLE": 0,
+    }
+    if not sim_drift:
+        p["SIM_DRIFT_SPEED"] = 0.0
+    if output == "gps_input":
+        p.update({"GPS2_TYPE": 14, "GPS_AUTO_SWITCH": 1})
+    else:
+        p.update({"VISO_TYPE": 1, "EK3_SRC2_POSXY": 6, "EK3_SRC2_VELXY": 6, "EK3_SRC2_POSZ": 1, "EK3_SRC2_YAW": 1,
+                  "EK3_SRC2_VELZ": 0})  # fmt: skip
+    return p
+
+
+def bridge_command(plan: FlightPlan, port: int, summary: Path, track: Path) -> list[str]:
+    """``magnav-ins bridge`` on SITL serial 1 (UDP ``port``) with the summary and track files."""
+    exe = Path(sys.executable).with_name("magnav-ins")
+    head = [str(exe)] if exe.is_file() else [sys.executable, "-m", "magnav_ins.cli"]
+    cmd = [*head, "bridge", "--connect", f"udpin:127.0.0.1:{port}", "--map", "builtin:osborne-magnetic",
+           "--output", plan.output, "--rate", "10", "--summary-json", str(summary), "--track-csv", str(track),
+           "--date", "2026-03-20", "--imu-world", "flat"]  # fmt: skip
+    if plan.grade is not None:
+        cmd += ["--grade", plan.grade]
+    cmd += ["--gps-id", "1"] if plan.output == "gps_input" else ["--ekf-source-set", "2"]
+    return cmd + list(plan.bridge_args)
+
+
+def _interp_truth(truth: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.interp(t, truth[:, 0], truth[:, 1]), np.interp(t, truth[:, 0], truth[:, 2])
+
+
+def _stop_process(p: subprocess.Popen | None, timeout_s: float = 20.0) -> None:
+    """SIGTERM the process group (the bridge's clean stop writes its summary), SIGKILL if it does not exit."""
+    if p is None or p.poll() is not None:
+        return
+    try:
+        os.killpg(p.pid, signal.SIGTERM)
+        p.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+    except ProcessLookupError:
+        pass
+
+
+def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by step
+    """Fly ``plan``; returns the figures (the bench's JSON line; module docstring, ``bench/sitl_flight.py``)."""
+    if sitl_dir() is None:
+        raise RuntimeError("../shared/tools/ardupilot-sitl is not beside the project")
+    home_lat, home_lon = (math.radians(x) for x in plan.home)
+    world = osborne_world()
+    port = free_udp_port()
+    work = Path(tempfile.mkdtemp(prefix="magnav-sitl-flight-"))
+    summary_path, track_path, bridge_out = work / "bridge.json", work / "track.csv", work / "bridge.out"
+    sitl = Sitl(
+        (plan.home[0], plan.home[1], plan.home_alt_m, 0.0),
+        defaults=(sitl_dir() / "copter.parm",),
+        params=sitl_params(plan.output, plan.speed_mps, plan.sim_drift),
+        world=world,
+        serial1_udp_port=port,
+        speedup=plan.speedup,
+        workdir=work / "sitl",
+    )
+    bridge: subprocess.Popen | None = None
+    gcs: GroundStation | None = None
+    out: dict = {"output": plan.output, "side_m": plan.side_m, "altitude_m": plan.altitude_m,
+                 "speed_mps": plan.speed_mps, "home": f"{plan.home[0]},{plan.home[1]}",
+                 "grade": plan.grade or "bridge default"}  # fmt: skip
+    t_start = time.monotonic()
+    try:
+        with bridge_out.open("w") as fh:
+            bridge = subprocess.Popen(
+                bridge_command(plan, port, summary_path, track_path), stdin=subprocess.DEVNULL, stdout=fh,
+                stderr=subprocess.STDOUT, start_new_session=True,
+            )  # fmt: skip
+        # wait for the bridge's warm-up before the SITL starts streaming to it
+        t_end = time.monotonic() + 300
+        while "bridge on udpin" not in bridge_out.read_text(errors="replace"):
+            if bridge.poll() is not None or time.monotonic() > t_end:
+                raise RuntimeError("bridge did not start: " + bridge_out.read_text()[-2000:])
+            time.sleep(0.5)
+        sitl.start()
+        gcs = GroundStation(sitl.gcs_url)
+        gcs.request_streams()
+        link = gcs.link
+        if not gcs.wait(lambda: gcs.said("EKF3 IMU0 is using GPS"), 120, "EKF3 using GPS"):
+            raise RuntimeError("EKF3 never used the GPS")
+        gcs.wait(lambda: False, 5.0)  # home and origin settle
+        link.set_mode("GUIDED")
+        t_arm = time.monotonic()
+        while not gcs.armed:
+            if time.monotonic() - t_arm > 60:
+                raise RuntimeError("did not arm: " + "; ".join(t for _, _, t in gcs.texts[-8:]))
+            link.arm(True)
+            gcs.wait(lambda: gcs.armed, 3.0)
+        link.takeoff(plan.altitude_m)
+        t_takeoff = time.monotonic()
+        out["armed_after_s"] = round(t_takeoff - t_start, 1)
+        gcs.wait(lambda: bool(gcs.ekf) and gcs.ekf[-1][3] - plan.home_alt_m > 0.9 * plan.altitude_m, 90, "climb")
+        t_deny: float | None = None
+
+        def deny_when_due() -> None:
+            nonlocal t_deny
+            if t_deny is None and time.monotonic() - t_takeoff >= plan.deny_after_s:
+                gcs.link.param_set("SIM_GPS1_ENABLE", 0)
+                t_deny = time.monotonic()
+                log.info("GNSS denied (SIM_GPS1_ENABLE=0) %.0f s after take-off", t_deny - t_takeoff)
+
+        aborted = ""
+        for fn, fe in plan.corners:
+            if aborted:
+                break
+            dlat, dlon = meters_to_latlon(fn * plan.side_m, fe * plan.side_m, home_lat, 0.0)
+            lat, lon = home_lat + float(dlat), home_lon + float(dlon)
+            leg_timeout = 1.8 * plan.side_m / plan.speed_mps + 60
+
+            def arrived(lat: float = lat, lon: float = lon) -> bool:
+                return bool(gcs.ekf) and float(horizontal_error_m(gcs.ekf[-1][1], gcs.ekf[-1][2], lat, lon)) < 15.0
+
+            t_leg = time.monotonic()
+            while time.monotonic() - t_leg < leg_timeout and not arrived():
+                if gcs.mode not in ("GUIDED", ""):  # a failsafe took over: let it land, record it
+                    aborted = f"mode {gcs.mode} at {time.monotonic() - t_takeoff:.0f} s after take-off"
+                    break
+                if not gcs.armed:
+                    aborted = "disarmed in flight"
+                    break
+                if plan.time_limit_s is not None and time.monotonic() - t_takeoff > plan.time_limit_s:
+                    aborted = f"time limit {plan.time_limit_s:.0f} s"
+                    break
+                link.goto(lat, lon, plan.altitude_m)
+                gcs.wait(arrived, 2.0, every=deny_when_due)
+        if t_deny is None:
+            deny_when_due()
+            t_deny = t_deny or time.monotonic()
+        out["aborted"] = aborted
+        if gcs.armed and gcs.mode == "GUIDED":
+            link.set_mode("LAND")
+        gcs.wait(lambda: not gcs.armed, 300, "landing and disarm")
+        t_land = time.monotonic()
+        out["landed"] = not gcs.armed
+        out["gnss_denied_s"] = round(t_land - t_deny, 1)
+        out["flight_s"] = round(t_land - t_takeoff, 1)
+        truth = np.array(gcs.truth)
+        out["landing_from_home_m"] = round(float(horizontal_error_m(truth[-1, 1], truth[-1, 2], home_lat, home_lon)), 1)
+        ekf = np.array(gcs.ekf)
+        m = (ekf[:, 0] >= t_deny) & (ekf[:, 0] <= t_land)
+        la, lo = _interp_truth(truth, ekf[m, 0])
+        e = horizontal_error_m(ekf[m, 1], ekf[m, 2], la, lo)
+        out["ekf_rms_horizontal_m"] = round(float(np.sqrt(np.mean(e**2))), 1)
+        out["ekf_max_horizontal_m"] = round(float(e.max()), 1)
+        out["ekf_final_horizontal_m"] = round(float(e[-1]), 1)
+        texts = [(round(t - t_takeoff, 1), s, x) for t, s, x in gcs.texts if t >= t_takeoff]
+        out["failsafes"] = [
+            f"{t}: {x}" for t, s, x in texts
+            if any(w in x.lower() for w in FAILSAFE_WORDS) and not any(i in x.lower() for i in IGNORED)
+        ]  # fmt: skip
+        out["autopilot_texts"] = len([x for x in texts if not x[2].startswith("magnav:")])
+        times = (t_takeoff, t_deny, t_land)
+    finally:
+        _stop_process(bridge)
+        if gcs is not None:
+            gcs.close()
+        sitl.stop()
+    if plan.keep:  # for a look afterwards: truth and the autopilot's estimate, ground-station clock (monotonic)
+        np.savez(
+            work / "flight.npz",
+            truth=truth,
+            ekf=ekf,
+            times=np.array(times),
+            clock_offset=time.time() - time.monotonic(),
+        )
+    _bridge_figures(out, summary_path, track_path, truth, times)
+    out["wall_s"] = round(time.monotonic() - t_start, 1)
+    if plan.keep:
+        out["workdir"] = str(work)
+    else:
+        shutil.rmtree(work, ignore_errors=True)
+    return out
+
+
+def _bridge_figures(out: dict, summary_path: Path, track_path: Path, truth: np.ndarray, times: tuple) -> None:
+    """The bridge's own figures: its stop summary, and its trusted outputs vs truth while denied (``track.csv``)."""
+    t_takeoff, t_deny, t_land = times
+    if summary_path.is_file():
+        s = json.loads(summary_path.read_text())
+        out["fixes_issued"] = s["map_fixes_issued"]
+        out["fixes_accepted"] = s["map_fixes_accepted"]
+        out["fix_attempts"] = s["map_fixes"]
+        out["gnss_fixes_accepted"] = s["gnss_fixes_accepted"]
+        out["bridge_statustexts"] = s["statustexts_sent"]
+        out["field_offset_nt"] = None if not math.isfinite(s["field_offset_nt"]) else round(s["field_offset_nt"], 1)
+        out["bridge_history"] = s["history"][-12:]
+        out["no_fix_reasons"] = s.get("no_fix_reasons", {})
+        out["rejected_reasons"] = s.get("rejected_reasons", {})
+        out["attitude_updates"] = s.get("attitude_accepted", 0)
+        out["imu_gaps"] = s["imu_gaps"]
+        out["reboots_seen"] = s["reboots"]
+        out["imu_samples"] = s["imu_samples"]
+        out["mag_unit"] = s.get("mag_unit", "")
+        out["latency_ms"] = s.get("latency_ms")
+    if not track_path.is_file():
+        return
+    import pandas as pd
+
+    tr = pd.read_csv(track_path)
+    # the track's wall clock is time.time(); the ground station's is time.monotonic()
+    tw = tr.t_wall.to_numpy() - (time.time() - time.monotonic())
+    trusted = tr.trusted.to_numpy() == 1
+    m = (tw >= t_deny) & (tw <= t_land) & trusted
+    if m.any():
+        la, lo = _interp_truth(truth, tw[m])
+        e = horizontal_error_m(np.radians(tr.lat_deg.to_numpy()[m]), np.radians(tr.lon_deg.to_numpy()[m]), la, lo)
+        out["bridge_rms_horizontal_m"] = round(float(np.sqrt(np.mean(e**2))), 1)
+        out["bridge_max_horizontal_m"] = round(float(e.max()), 1)
+        sig = tr.sigma_h_m.to_numpy()[m]
+        out["bridge_sigma_mean_m"] = round(float(np.mean(sig)), 1)
+        out["bridge_nees"] = round(float(np.mean((e / np.maximum(sig, 1e-3)) ** 2) / 2.0), 2)
+    md = (tw >= t_deny) & (tw <= t_land)
+    out["bridge_trusted_fraction_denied"] = round(float(np.mean(trusted[md])), 3) if md.any() else 0.0
+    # the output rate the autopilot saw (wall clock), over the whole flight
+    mf = (tw >= t_takeoff) & (tw <= t_land)
+    if mf.sum() > 1:
+        out["output_rate_hz"] = round(float((mf.sum() - 1) / (tw[mf][-1] - tw[mf][0])), 2)
+        out["output_max_interval_s"] = round(float(np.max(np.diff(tw[mf]))), 3)
