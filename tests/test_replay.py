@@ -687,6 +687,8 @@ def test_batched_replay_equals_sample_by_sample(sim):
     class OneByOne:
         """The pipeline with its batch input replaced by sample-by-sample push_imu (the bridge's feed)."""
 
+        can_push_outputs = False  # not the free-inertial path in one call either
+
         def __init__(self, pipe) -> None:  # noqa: ANN001
             self.p = pipe
 
@@ -716,3 +718,73 @@ def test_batched_replay_equals_sample_by_sample(sim):
         assert [f.available for f in a.fixes] == [f.available for f in b.fixes]
         if fusion == "ukf":
             assert sum(i.accepted for i in a.innovations) >= 1
+
+
+@pytest.mark.parametrize(("output_dt", "chunk"), [(0.2, None), (2.5, 37)])
+def test_free_inertial_fast_path_equals_sample_by_sample_across_a_gap(sim, tmp_path, monkeypatch, output_dt, chunk):
+    """The free-inertial replay mechanises the samples between two gaps in compiled chunks with the output samples
+    marked (:meth:`.online.OnlinePipeline.push_imu_outputs`); the sample-by-sample feed of the bridge (``push_imu``
+    and ``estimate`` at each output) gives the same trajectory, sigmas, protection levels and summary, across a
+    2 s gap that restarts the INS (``--max-gap 0.5``). Tolerance 1e-12 relative (the compiled covariance product
+    may sum in another order than numpy's BLAS; measured: bit for bit). ``output_dt`` 2.5 s puts covariance steps
+    (every 1 s) between outputs; ``chunk`` 37 splits the runs between outputs and gaps into many calls."""
+    from magnav_ins.mavlink import replay as replay_mod
+    from magnav_ins.mavlink.bridge import ScalarAnomalyModel
+    from magnav_ins.mavlink.replay import make_online_pipeline, replay
+
+    truth, imu = sim["truth"], sim["imu"]
+    k_gap = int(30.0 * RATE_HZ) + 1
+    t = truth.t + T0 + np.where(np.arange(len(truth)) >= k_gap, 2.0, 0.0)
+    t = t + np.where(np.arange(len(t)) % 7 == 3, 0.004, 0.0)  # uneven sample intervals
+    log = tmp_path / "gap2s.csv"
+    np.savetxt(log, np.column_stack([t, imu.gyro_b, imu.accel_b, sim["mag_b"]]), delimiter=",", fmt="%.17g",
+               comments="", header="t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,mag_x,mag_y,mag_z")  # fmt: skip
+    rec = read_log(log)
+    init = (math.radians(-21.7996), math.radians(140.7205), 400.0, math.radians(90.0))
+    if chunk is not None:
+        monkeypatch.setattr(replay_mod, "FAST_CHUNK", chunk)
+    calls = []
+
+    class Counted:
+        def __init__(self, pipe, one_by_one: bool) -> None:  # noqa: ANN001
+            self.p, self.one = pipe, one_by_one
+
+        def __getattr__(self, name: str):  # noqa: ANN204
+            return getattr(self.p, name)
+
+        @property
+        def can_push_outputs(self) -> bool:
+            return not self.one and self.p.can_push_outputs
+
+        def push_imu_outputs(self, *args):  # noqa: ANN002, ANN202
+            calls.append(len(args[0]))
+            return self.p.push_imu_outputs(*args)
+
+        def push_imu_batch(self, t, w, f, *, altitude_hold=None, attitudes=False):  # noqa: ANN001, ANN202, ARG002
+            assert self.one, "the fast path must take every sample"
+            for k in range(len(t)):
+                self.p.push_imu(float(t[k]), w[k], f[k])
+
+    runs = []
+    for one in (False, True):
+
+        def factory(nav, sigma, one=one):  # noqa: ANN001, ANN202
+            return Counted(make_online_pipeline(nav, sigma, None, fusion="free_inertial", matcher="none"), one)
+
+        runs.append(replay(rec, None, init=init, field_model=ScalarAnomalyModel(DATE), output_dt=output_dt,
+                           max_gap_s=0.5, pipeline_factory=factory))  # fmt: skip
+    fast, slow = runs
+    assert sum(calls) == len(t) - 2  # every sample but the first (the start) and the one after the gap (restart)
+    assert len(calls) >= (2 if chunk is None else len(t) // chunk)
+    assert len(fast.gaps) == 1 and fast.gaps[0]["row"] == k_gap + 1
+    assert len(fast.t) == len(slow.t) > 90.0 / output_dt
+    np.testing.assert_array_equal(fast.t, slow.t)
+    tf, ts = fast.trajectory, slow.trajectory
+    for x, y in ((tf.lat, ts.lat), (tf.lon, ts.lon), (tf.h, ts.h), (tf.v_n, ts.v_n), (tf.q_nb, ts.q_nb),
+                 (fast.sigma_ne, slow.sigma_ne), (fast.hpl_m, slow.hpl_m)):  # fmt: skip
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=0.0)
+    assert fast.summary() == slow.summary()
+    # the INS ran free (its sigma grows) and restarted at the sample after the gap with the grown sigma
+    assert fast.sigma_ne[-1, 0] > 1.5 * fast.sigma_ne[0, 0]
+    i = int(np.argmax(fast.t >= t[k_gap] - 1e-9))
+    assert fast.sigma_ne[i, 0] >= fast.sigma_ne[i - 1, 0] and np.all(np.diff(fast.t) > 0)

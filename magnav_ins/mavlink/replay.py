@@ -78,6 +78,8 @@ LEVELLING_S = 1.0
 #: initial 1-sigmas with --init: roll/pitch levelled from the specific force (rad), a heading given by hand (rad)
 INIT_TILT_SIGMA_RAD = 0.01
 INIT_YAW_SIGMA_RAD = 0.05
+#: IMU samples per call of the free-inertial replay (bounds the temporary arrays; the progress bar's step)
+FAST_CHUNK = 16384
 
 
 # ------------------------------------------------------------------------------------------------ recordings
@@ -532,6 +534,21 @@ class _Outputs:
         row[13] = float(est.hpl_m)
         self.n += 1
 
+    def add_rows(self, rows: FloatArray, hpl: Callable[[FloatArray], float]) -> None:
+        """Estimates as rows of :data:`magnav_ins.aiding.fusion.free_run.ROW_COLUMNS`; ``hpl(P_ne)`` (m) of each."""
+        m = len(rows)
+        if self.n + m > len(self.a):
+            self.a = np.concatenate([self.a, np.empty((max(m, len(self.a)), self.a.shape[1]))])
+        out = self.a[self.n : self.n + m]
+        out[:, 0:11] = rows[:, 0:11]
+        out[:, 11] = np.sqrt(np.maximum(rows[:, 11], 0.0))
+        out[:, 12] = np.sqrt(np.maximum(rows[:, 13], 0.0))
+        P = np.empty((2, 2))
+        for i, r in enumerate(rows):
+            P[0, 0], P[0, 1], P[1, 0], P[1, 1] = r[11], r[12], r[12], r[13]
+            out[i, 13] = hpl(P)
+        self.n += m
+
     @property
     def last_t(self) -> float:
         return float(self.a[self.n - 1, 0])
@@ -727,6 +744,29 @@ def replay(
     ig = 0
     k = k0 + 1
     while k < n:
+        if bh is None and not takes_readings and getattr(pipe, "can_push_outputs", False):
+            # free inertial: the samples up to the next gap in chunks, the output samples marked, in one compiled
+            # call each (OnlinePipeline.push_imu_outputs: the same numbers as the general path below)
+            b = min(int(gap_at[ig]) if ig < len(gap_at) else n, k + FAST_CHUNK)
+            if b > k:
+                idx: list[int] = []
+                kk = k
+                while True:
+                    e = max(kk, int(np.searchsorted(t_all, t_next - _TOL, side="left")))
+                    if e >= b:
+                        break
+                    idx.append(e - k)
+                    t_next += output_dt * max(1.0, math.floor((float(t_all[e]) - t_next) / output_dt + _TOL) + 1.0)
+                    kk = e + 1
+                rows = pipe.push_imu_outputs(t_all[k:b], gyro[k:b], accel[k:b], np.asarray(idx, dtype=np.int64))
+                outs.add_rows(rows, pipe.fuser.monitor.hpl)
+                j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] - _TOL, side="left")))
+                if idx and idx[-1] == b - 1 - k:  # an output sample: the magnetometer samples at its time are past
+                    j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] + _TOL, side="right")))
+                if progress is not None:
+                    progress(b - k)
+                k = b
+                continue
         # the next sample that needs handling: a gap, an output, a reading; the samples before it, and the sample
         # itself unless it ends a gap or a reading falls inside its interval, go to the pipeline in one call
         e_gap = int(gap_at[ig]) if ig < len(gap_at) else n
