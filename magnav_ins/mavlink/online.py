@@ -301,7 +301,6 @@ def make_online_pipeline(
     :class:`OnlinePipeline`.
     """
     from ..aiding.fusion import ImuNoise, make_fuser
-    from ..aiding.matchers.registry import build_matcher
     from ..ins.error_model import initial_covariance
     from ..ins.imu_models import get_grade
 
@@ -319,6 +318,8 @@ def make_online_pipeline(
     fuser = make_fuser(fusion, init, ImuNoise.from_grade(g), **options)
     m = None
     if fusion != "free_inertial" and matcher not in (None, "none"):
+        from ..aiding.matchers.registry import build_matcher  # here: the free INS needs none (scipy.stats, 30 MB)
+
         m = build_matcher({"kind": matcher} if isinstance(matcher, str) else dict(matcher))
     kind = getattr(fmap, "kind", None)
     return OnlinePipeline(
