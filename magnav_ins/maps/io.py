@@ -390,7 +390,7 @@ class _PlainVariable:
 class _PlainNetcdf:
     """A NetCDF file of plain float variables read with netCDF4 alone, shaped as the xarray ``Dataset`` that
     :func:`read_map` reads (``attrs``, ``data_vars``, ``ds[name]``): the same numbers, without importing xarray and
-    pandas (~50 MB, a third of a log replay's memory). Anything else (packed or integer variables, strings,
+    pandas (~50 MB, a sixth of a log replay's peak memory). Anything else (packed or integer variables, strings,
     CF ``coordinates``, groups) is left to xarray: :meth:`open` returns None."""
 
     def __init__(self, attrs: dict[str, Any], variables: dict[str, _PlainVariable], dims: set[str]) -> None:

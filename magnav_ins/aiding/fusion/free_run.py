@@ -8,10 +8,12 @@ path takes one (where a step of ``cov_step_s`` s ends, and at each estimate), wi
 :func:`.common.symmetrise` (with ``floor = 0``) and the same altitude-hold freeze of the down states.
 
 Why: the log replay of the free-inertial baseline records an estimate every 0.2 s, and each estimate through the
-Python objects (a ``NavState``, a ``NavEstimate``, the checkpoint kept for rewinds) cost ~0.5 ms, 3-5x the
-mechanisation of the 80 samples between two of them. The free-inertial fuser never rewinds (it applies no fix), so
-no checkpoint is kept here. The same numbers as the Python path to rounding (the matrix products go through the
-BLAS numba links, whose summation order may differ in the last bit; tested to 1e-9 relative).
+Python objects (the batch push, a ``NavState``, a ``NavEstimate``, the covariance step's wrappers, the checkpoint
+kept for rewinds) cost ~0.4 ms, more than 10x the mechanisation of the 80 samples (400 Hz) between two of them: a
+1 M-row log replayed at ~100-140 k samples/s; in one call ~1 M samples/s. The free-inertial fuser never rewinds
+(it applies no fix), so no checkpoint is kept here. The same numbers as the Python path to rounding (the matrix
+products go through the BLAS numba links, whose summation order may differ in the last bit; the replay test holds
+them to 1e-12 relative and measures them bit for bit).
 
 Units: as :mod:`.common` (SI, NED, body FRD, positions rad and ellipsoidal metres).
 """
