@@ -788,3 +788,63 @@ def test_free_inertial_fast_path_equals_sample_by_sample_across_a_gap(sim, tmp_p
     assert fast.sigma_ne[-1, 0] > 1.5 * fast.sigma_ne[0, 0]
     i = int(np.argmax(fast.t >= t[k_gap] - 1e-9))
     assert fast.sigma_ne[i, 0] >= fast.sigma_ne[i - 1, 0] and np.all(np.diff(fast.t) > 0)
+
+
+def test_csv_parsed_without_pandas_same_numbers(sim, tmp_path):
+    """A plain numeric CSV is parsed straight into one float64 array (no pandas table and copy: 160 MB less at
+    1 M rows); the numbers are pandas' own, with comment lines, a blank line and an extra text column. A pressure
+    column or a bad value goes through pandas (which names the row and column)."""
+    import pandas as pd
+
+    from magnav_ins.mavlink.replay import _read_csv_numbers
+
+    imu, n = sim["imu"], 400
+    cols = np.column_stack([sim["truth"].t[:n] + T0, imu.gyro_b[:n], imu.accel_b[:n], sim["mag_b"][:n]])
+    body = "\n".join(
+        ",".join([f"{cols[k, 0]:.5f}", *(f"{x:.9e}" for x in cols[k, 1:7]), *(f"{x:.2f}" for x in cols[k, 7:])])
+        + ",note"
+        for k in range(n)
+    )
+    p = tmp_path / "plain.csv"
+    p.write_text("# recorded by a test\n t ,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,mag_x,mag_y,mag_z,remark\n"
+                 + body.replace("\n", "\n# a comment line\n", 1) + "\n\n")  # fmt: skip
+    fast = _read_csv_numbers(p)
+    assert fast is not None and fast[1]
+    ref = pd.read_csv(p, comment="#")
+    ref.columns = [c.strip() for c in ref.columns]
+    want = ["t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "mag_x", "mag_y", "mag_z"]
+    np.testing.assert_array_equal(fast[0], ref[want].to_numpy(float))
+    rec = read_log(p)
+    np.testing.assert_array_equal(rec.imu.gyro_b, fast[0][:, 1:4])
+    np.testing.assert_array_equal(rec.mag_b_nt, fast[0][:, 7:10])
+    bad = tmp_path / "bad.csv"
+    bad.write_text(p.read_text().replace(f"{cols[5, 0]:.5f},", f"{cols[5, 0]:.5f},x", 1))
+    assert _read_csv_numbers(bad) is None
+    with pytest.raises(InputError, match="column 'gyro_x': not a number"):
+        read_log(bad)
+    baro = tmp_path / "baro.csv"
+    baro.write_text("t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,pressure_pa\n" + "\n".join(
+        f"{T0 + 0.04 * k:.2f},0,0,0,0,0,-9.8,{'' if k % 2 else 96000.0}" for k in range(10)))  # fmt: skip
+    assert _read_csv_numbers(baro) is None
+    assert len(read_log(baro).baro_pa) == 5
+
+
+def test_free_inertial_csv_replay_imports_no_heavy_libraries(sim, tmp_path):
+    """The free-inertial replay of a CSV over one of this project's NetCDF maps imports neither xarray, pandas,
+    pymavlink, scipy.stats nor scipy.signal (~130 MB of a 1 M-row replay's memory: the < 300 MB target)."""
+    import subprocess
+    import sys
+
+    log = tmp_path / "short.csv"
+    _gapped_csv(sim, log)
+    code = (
+        "import sys, json\nfrom magnav_ins.cli import main\n"
+        f"rc = main(['replay', {str(log)!r}, '--map', {MAP!r}, '--init={INIT}', '--fusion', 'free_inertial', "
+        f"'--date', {DATE!r}, '--quiet', '--out', {str(tmp_path / 'o.csv')!r}])\n"
+        "print(json.dumps([rc, sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('xarray', 'pandas', 'pymavlink') or m in ('scipy.stats', 'scipy.signal'))]))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    rc, heavy = json.loads(out.stdout.splitlines()[-1])
+    assert rc == 0 and heavy == [], heavy
+    assert len(_read_traj(tmp_path / "o.csv")["t"]) > 80
