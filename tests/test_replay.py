@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from pathlib import Path
 
@@ -848,3 +849,82 @@ def test_free_inertial_csv_replay_imports_no_heavy_libraries(sim, tmp_path):
     rc, heavy = json.loads(out.stdout.splitlines()[-1])
     assert rc == 0 and heavy == [], heavy
     assert len(_read_traj(tmp_path / "o.csv")["t"]) > 80
+
+
+# ------------------------------------------------------------------------------------------ streamed CSV
+def _sim_csv(sim, path: Path, *, gap: bool = False) -> None:
+    """The simulated flight as a replay CSV (a comment line and a blank line in the middle; with ``gap``, the
+    clock jump of :func:`_gapped_csv`)."""
+    if gap:
+        _gapped_csv(sim, path)
+        return
+    cols = np.column_stack([sim["truth"].t + T0, sim["imu"].gyro_b, sim["imu"].accel_b, sim["mag_b"]])
+    lines = [",".join(f"{x:.17g}" for x in row) for row in cols]
+    lines.insert(1500, "# a comment between the rows")
+    lines.insert(1700, "")
+    path.write_text("t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,mag_x,mag_y,mag_z\n" + "\n".join(lines) + "\n")
+
+
+def test_streamed_csv_replays_bit_for_bit_as_read_whole(sim, tmp_path):
+    """A CSV read chunk by chunk (open_log, 997 lines a chunk: chunk ends fall on outputs, readings, a comment, the
+    gap) gives the trajectory, fix attempts and gap restarts of the same CSV read whole, bit for bit, for the UKF
+    (readings every 0.5 s, MLR attempts) and for the free INS; so does a --duration that ends in a later chunk."""
+    from magnav_ins.maps.builtin import load_map
+    from magnav_ins.mavlink.bridge import ScalarAnomalyModel
+    from magnav_ins.mavlink.replay import open_log, replay
+
+    fmap = load_map(MAP).with_error_layer(0.0, 150.0, "the readings come from this map")  # fixes get accepted
+    init = (math.radians(-21.7996), math.radians(140.7205), 400.0, math.radians(90.0))
+    for gap in (False, True):
+        csv = tmp_path / f"rec_{gap}.csv"
+        _sim_csv(sim, csv, gap=gap)
+        for fusion, duration in (("ukf", None), ("free_inertial", None), ("ukf", 61.3)):
+            runs = []
+            for rec in (read_log(csv), open_log(csv, chunk_rows=997)):
+                runs.append(replay(rec, fmap, init=init, field_model=ScalarAnomalyModel(DATE), reading_interval_s=0.5,
+                                   output_dt=0.2, fusion=fusion, matcher="mlr", duration_s=duration))  # fmt: skip
+            whole, streamed = runs
+            assert streamed.imu_samples == whole.imu_samples and streamed.duration_s == whole.duration_s
+            assert len(whole.t) > 200
+            for x, y in ((whole.t, streamed.t), (whole.trajectory.lat, streamed.trajectory.lat),
+                         (whole.trajectory.lon, streamed.trajectory.lon), (whole.trajectory.v_n, streamed.trajectory.v_n),
+                         (whole.trajectory.q_nb, streamed.trajectory.q_nb), (whole.sigma_ne, streamed.sigma_ne),
+                         (whole.hpl_m, streamed.hpl_m)):  # fmt: skip
+                np.testing.assert_array_equal(x, y)
+            assert [(f.t, f.available, f.reason) for f in whole.fixes] == [
+                (f.t, f.available, f.reason) for f in streamed.fixes
+            ]
+            assert streamed.readings == whole.readings and streamed.gaps == whole.gaps
+            assert len(whole.gaps) == (1 if gap and duration is None else 0)
+            if fusion == "ukf":  # the matcher ran (no fix is accepted on this CSV: see the README's replay table)
+                assert len(whole.fixes) >= 5
+
+
+def test_streamed_csv_names_a_bad_row_deep_in_a_later_chunk(sim, tmp_path, capsys, monkeypatch):
+    """A bad value, a NaN and a time going back far into the file (in the 4th or 5th chunk of 500 lines, after a
+    comment line that is no row) are named with the row the whole-file reader gives (1-based data row) and the
+    column, one line, exit 2, no output."""
+    import magnav_ins.mavlink.replay as replay_mod
+
+    monkeypatch.setattr(replay_mod, "CSV_CHUNK_ROWS", 500)
+    monkeypatch.setattr(replay_mod.open_log, "__kwdefaults__", {"geoid_height_m": 0.0, "chunk_rows": 500})
+    good = tmp_path / "good.csv"
+    _sim_csv(sim, good)
+    lines = good.read_text().splitlines()
+    # lines[0] header, lines[1500] the comment, lines[1700] blank: data row r is lines[r] up to 1499, then lines[r+1]
+    # up to 1698, then lines[r + 2]
+    for name, row, edit, match in (
+        ("word", 1877, lambda f: f[:5] + ["oops"] + f[6:], "row 1877 column 'accel_y': not a number: 'oops'"),
+        ("nan", 2100, lambda f: f[:8] + ["nan"] + f[9:], "row 2100 column 'mag_y': non-finite value nan"),
+        ("back", 1999, lambda f: ["100.0"] + f[1:], "CSV row 1999: time goes backwards or repeats: t=100.0 s"),
+    ):
+        li = lines.copy()
+        i = row + 2
+        li[i] = ",".join(edit(li[i].split(",")))
+        bad = tmp_path / f"{name}.csv"
+        bad.write_text("\n".join(li) + "\n")
+        with pytest.raises(InputError, match=re.escape(f"{bad}: {match}")):
+            read_log(bad)  # the whole-file reader says the same
+        assert replay_mod.open_log(bad).rest is not None  # the first chunk is fine: streamed
+        err = _assert_fails(capsys, tmp_path, bad, f"--init={INIT}", "--date", DATE, "--fusion", "ukf", match=match)
+        assert f"{bad}: " in err

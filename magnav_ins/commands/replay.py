@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     from ..aiding.calibration import MagCalibration
     from ..maps.builtin import load_map
     from ..mavlink.field_model import ScalarAnomalyModel
-    from ..mavlink.replay import initial_state, read_log, replay, write_trajectory
+    from ..mavlink.replay import initial_state, open_log, read_log, replay, write_trajectory
 
     init = parse_init(args.init)
     for option, path in (("--out", args.out), ("--summary-json", args.summary_json)):
@@ -163,14 +163,19 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--max-gap {args.max_gap!r}: expected a positive number of seconds")
     if args.window < 1 or args.match_every < 1:
         raise ConfigError(f"--window {args.window} / --match-every {args.match_every}: expected integers >= 1")
-    rec = read_log(args.log, geoid_height_m=args.geoid_height)
+    # a long CSV is streamed (read chunk by chunk as the replay goes); --on-gap stop checks the whole log first
+    reader = read_log if args.on_gap == "stop" else open_log
+    rec = reader(args.log, geoid_height_m=args.geoid_height)
     fmap = load_map(args.map)
     calibration = MagCalibration.from_json(args.calibration) if args.calibration else None
     date, date_source = _date(args, rec)
     _, k0, _ = initial_state(rec, init)
-    total = len(rec.imu) - k0 - 1
+    total = len(rec.imu) - k0 - 1 if rec.rest is None else rec.rest.estimated_rows - k0 - 1
     if args.duration is not None and args.duration > 0:
         total = int(np.searchsorted(rec.imu.t, rec.imu.t[k0] + args.duration + 1e-9, side="right")) - k0 - 1
+        if rec.rest is not None and total >= len(rec.imu) - k0 - 1:  # beyond the first chunk: at its rate
+            rate = (len(rec.imu) - 1) / max(float(rec.imu.t[-1] - rec.imu.t[0]), 1e-9)
+            total = min(int(args.duration * rate), rec.rest.estimated_rows - k0 - 1)
     # a bar on a terminal only (tqdm's disable=None), on stderr, gone when done; --quiet: none
     bar = tqdm(total=total, desc="replay", unit="sample", unit_scale=True, mininterval=0.5, leave=False,
                disable=True if args.quiet else None, file=sys.stderr)  # fmt: skip

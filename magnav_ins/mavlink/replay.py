@@ -22,6 +22,8 @@ scalar-first (w, x, y, z) and are converted to our scalar-last here and nowhere 
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import logging
 import math
 import re
@@ -42,7 +44,7 @@ from ..core.units import NT_PER_GAUSS
 from .baro import BaroHeight, hold_height
 from .online import MAX_GAP_S, make_online_pipeline
 
-__all__ = ["LogRecording", "ReplayResult", "make_online_pipeline", "read_log", "replay", "write_trajectory"]
+__all__ = ["LogRecording", "ReplayResult", "make_online_pipeline", "open_log", "read_log", "replay", "write_trajectory"]
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +83,8 @@ INIT_TILT_SIGMA_RAD = 0.01
 INIT_YAW_SIGMA_RAD = 0.05
 #: IMU samples per call of the free-inertial replay (bounds the temporary arrays; the progress bar's step)
 FAST_CHUNK = 16384
+#: lines of a CSV recording read at a time when it is streamed (:func:`open_log`)
+CSV_CHUNK_ROWS = 65536
 
 
 # ------------------------------------------------------------------------------------------------ recordings
@@ -124,6 +128,7 @@ class LogRecording:
     notes: tuple[str, ...] = ()
     baro_t: FloatArray = field(default_factory=lambda: np.zeros(0))
     baro_pa: FloatArray = field(default_factory=lambda: np.zeros(0))
+    rest: CsvChunks | None = None  # a streamed CSV's later chunks (:func:`open_log`); None: all of it is here
 
 
 def _check_series(path: Path, what: str, t: FloatArray, values: dict[str, FloatArray], *, strict: bool) -> None:
@@ -308,11 +313,9 @@ def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
     )
 
 
-def _read_csv_numbers(p: Path) -> tuple[FloatArray, bool] | None:
-    """The plain numeric CSV (no pressure column, every wanted field a number) as one float64 array of the wanted
-    columns (:data:`CSV_IMU_COLUMNS` then :data:`CSV_MAG_COLUMNS` when all present) and whether the magnetometer is
-    there, parsed straight into the array (``np.loadtxt``: no table object, no second copy, no pandas import: a
-    1 M-row log takes 80 MB, ~2 s); None for anything else (the pandas path then reads it or names the problem)."""
+def _csv_header(p: Path) -> tuple[int, list[str]] | None:
+    """The lines up to and including the header (comments and blank lines before it) and the header's columns, for
+    the plain numeric CSV (no quotes, no repeated name, no pressure column, every IMU column); None otherwise."""
     skip = 0
     header = ""
     try:
@@ -329,16 +332,155 @@ def _read_csv_numbers(p: Path) -> tuple[FloatArray, bool] | None:
         return None
     if any(c not in cols for c in CSV_IMU_COLUMNS):
         return None
+    return skip, cols
+
+
+def _csv_wanted(cols: list[str]) -> tuple[list[str], bool]:
     has_mag = all(c in cols for c in CSV_MAG_COLUMNS)
-    wanted = list(CSV_IMU_COLUMNS) + (list(CSV_MAG_COLUMNS) if has_mag else [])
+    return list(CSV_IMU_COLUMNS) + (list(CSV_MAG_COLUMNS) if has_mag else []), has_mag
+
+
+def _loadtxt(source: Any, cols: list[str], wanted: list[str], skip: int = 0) -> FloatArray:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "input contained no data": said later as "fewer than 2 data rows"
+        return np.loadtxt(source, dtype=np.float64, delimiter=",", comments="#", skiprows=skip,
+                          usecols=[cols.index(c) for c in wanted], ndmin=2, encoding="utf-8")  # fmt: skip
+
+
+def _read_csv_numbers(p: Path) -> tuple[FloatArray, bool] | None:
+    """The plain numeric CSV (no pressure column, every wanted field a number) as one float64 array of the wanted
+    columns (:data:`CSV_IMU_COLUMNS` then :data:`CSV_MAG_COLUMNS` when all present) and whether the magnetometer is
+    there, parsed straight into the array (``np.loadtxt``: no table object, no second copy, no pandas import: a
+    1 M-row log takes 80 MB, ~2 s); None for anything else (the pandas path then reads it or names the problem)."""
+    head = _csv_header(p)
+    if head is None:
+        return None
+    skip, cols = head
+    wanted, has_mag = _csv_wanted(cols)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # "input contained no data": said later as "fewer than 2 data rows"
-            a = np.loadtxt(p, dtype=np.float64, delimiter=",", comments="#", skiprows=skip,
-                           usecols=[cols.index(c) for c in wanted], ndmin=2, encoding="utf-8")  # fmt: skip
+        a = _loadtxt(p, cols, wanted, skip)
     except (ValueError, UnicodeDecodeError):
         return None
     return a, has_mag
+
+
+class CsvChunks:
+    """The rest of a CSV recording read :data:`CSV_CHUNK_ROWS` lines at a time (:func:`open_log`): iterating gives
+    each chunk's wanted columns as one float64 array, checked as the whole-file reader checks them (finite values,
+    time strictly increasing, also across chunks); a bad row raises :class:`InputError` naming the file and the
+    row counted from the first data row of the file. ``estimated_rows``: data rows in the whole file, estimated
+    from the first chunk's bytes per line (for a progress bar). Single pass; closes the file at its end."""
+
+    def __init__(self, p: Path, fh: Any, cols: list[str], wanted: list[str], rows_before: int, t_last: float,
+                 chunk_rows: int, estimated_rows: int) -> None:  # fmt: skip
+        self.path, self._fh, self.cols, self.wanted = p, fh, cols, wanted
+        self.rows_done, self.t_last, self.chunk_rows = rows_before, t_last, chunk_rows
+        self.estimated_rows = estimated_rows
+
+    def __iter__(self) -> CsvChunks:
+        return self
+
+    def __next__(self) -> FloatArray:
+        while self._fh is not None:
+            lines = list(itertools.islice(self._fh, self.chunk_rows))
+            if len(lines) < self.chunk_rows:
+                self._fh.close()
+                self._fh = None
+            try:
+                a = _loadtxt(lines, self.cols, self.wanted)
+            except (ValueError, UnicodeDecodeError) as exc:
+                _raise_bad_csv_row(self.path, lines, self.cols, self.wanted, self.rows_done, exc)
+            if len(a) == 0 or a.shape[1] != len(self.wanted):
+                continue  # comments or blank lines only
+            _check_csv_rows(self.path, a, self.wanted, self.rows_done, self.t_last)
+            self.rows_done += len(a)
+            self.t_last = float(a[-1, 0])
+            return a
+        raise StopIteration
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+
+def _raise_bad_csv_row(p: Path, lines: list[str], cols: list[str], wanted: list[str], row0: int, exc: Exception):  # noqa: ANN202
+    """The first row of ``lines`` that ``np.loadtxt`` could not read, as :class:`InputError` naming the file, the
+    row (``row0`` data rows come before these lines) and the column (the pandas reader's message)."""
+    idx = [cols.index(c) for c in wanted]
+    r = row0
+    for line in lines:
+        s = line.split("#", 1)[0].strip()
+        if not s:
+            continue
+        r += 1
+        f = s.split(",")
+        if len(f) != len(cols):
+            raise InputError(f"{p}: row {r}: {len(f)} fields, the header has {len(cols)}") from None
+        for c, i in zip(wanted, idx, strict=True):
+            try:
+                float(f[i])
+            except ValueError:
+                raise InputError(f"{p}: row {r} column {c!r}: not a number: {f[i]!r}") from None
+    raise InputError(f"{p}: cannot read as CSV after row {row0} ({exc})") from None
+
+
+def _check_csv_rows(p: Path, a: FloatArray, wanted: list[str], row0: int, t_prev: float) -> None:
+    """Finite values and strictly increasing times in the chunk ``a`` (data rows ``row0 + 1`` ... of the file,
+    ``t_prev`` the time of the row before it, -inf for none), with the whole-file reader's messages."""
+    for jc, c in enumerate(wanted):
+        bad = ~np.isfinite(a[:, jc])
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(f"{p}: row {row0 + k + 1} column {c!r}: non-finite value {float(a[k, jc])}")
+    t = a[:, 0]
+    if t[0] <= t_prev:
+        raise InputError(
+            f"{p}: CSV row {row0 + 1}: time goes backwards or repeats: t={float(t[0])} s after t={t_prev} s"
+        )
+    d = np.diff(t)
+    bad = d <= 0
+    if bad.any():
+        k = int(np.argmax(bad)) + 1
+        raise InputError(
+            f"{p}: CSV row {row0 + k + 1}: time goes backwards or repeats: t={float(t[k])} s after "
+            f"t={float(t[k - 1])} s"
+        )
+
+
+def open_log(path: str | Path, *, geoid_height_m: float = 0.0, chunk_rows: int = CSV_CHUNK_ROWS) -> LogRecording:
+    """As :func:`read_log`, but a plain numeric CSV longer than ``chunk_rows`` lines is streamed: the recording
+    holds its first chunk and ``rest`` (a :class:`CsvChunks`) the others, which :func:`replay` reads as it goes
+    (the log is never held whole: ~10 MB instead of 80 MB at 1 M rows; the same replay, bit for bit). Bad rows in
+    later chunks raise :class:`InputError` when the replay reaches them (nothing has been written then)."""
+    p = Path(path)
+    if _detect(p) != "csv" or chunk_rows < 2:
+        return read_log(p, geoid_height_m=geoid_height_m)
+    head = _csv_header(p)
+    if head is None:
+        return read_log(p)
+    skip, cols = head
+    wanted, has_mag = _csv_wanted(cols)
+    fh = p.open(encoding="utf-8")
+    try:
+        for _ in range(skip):
+            fh.readline()
+        lines = list(itertools.islice(fh, chunk_rows))
+        if len(lines) < chunk_rows:  # short: the whole-file reader
+            fh.close()
+            return read_log(p)
+        bytes_per_line = max(sum(len(line) for line in lines) / len(lines), 1.0)  # characters: ~bytes
+        a = _loadtxt(lines, cols, wanted)
+    except (ValueError, UnicodeDecodeError):
+        fh.close()
+        return read_log(p)  # the whole-file readers name the problem (or read what np.loadtxt could not)
+    del lines
+    if len(a) < 2 or a.shape[1] != len(wanted):
+        fh.close()
+        return read_log(p)
+    estimated = int(p.stat().st_size / bytes_per_line)
+    rest = CsvChunks(p, fh, cols, wanted, len(a), float(a[-1, 0]), chunk_rows, estimated)
+    return dataclasses.replace(_csv_recording(p, a, has_mag, None), rest=rest)
 
 
 def _read_csv(p: Path) -> LogRecording:
@@ -608,12 +750,13 @@ class _Outputs:
 _OUT_COLUMNS = ("t", "lat", "lon", "h", "vn", "ve", "vd", "qx", "qy", "qz", "qw", "sigma_n", "sigma_e", "hpl")
 
 
-def _gap_message(rec: LogRecording, k: int, t: FloatArray, max_gap_s: float) -> str:
+def _gap_message(rec: LogRecording, k: int, t: FloatArray, max_gap_s: float, row0: int = 0) -> str:
+    """The gap ending at sample ``k`` of ``t`` (``row0`` samples of the log before ``t[0]``)."""
     what = {"ulog": f"topic '{rec.sources.get('imu', '')}' ", "tlog": f"message {rec.sources.get('imu', '')} "}.get(
         rec.fmt, ""
     )
     return (
-        f"{rec.path}: {what}row {k + 1}: IMU gap of {t[k] - t[k - 1]:.6g} s (t={t[k - 1]:.6f} -> {t[k]:.6f} s) is "
+        f"{rec.path}: {what}row {row0 + k + 1}: IMU gap of {t[k] - t[k - 1]:.6g} s (t={t[k - 1]:.6f} -> {t[k]:.6f} s) is "
         f"longer than --max-gap {max_gap_s:g} s"
     )
 
@@ -684,14 +827,25 @@ def replay(
             raise ConfigError(f"--duration must be > 0 s, got {duration_s}")
         k_end = int(np.searchsorted(imu.t, imu.t[k0] + duration_s + _TOL, side="right"))
     t_all, gyro, accel = imu.t[:k_end], imu.gyro_b[:k_end], imu.accel_b[:k_end]
-    n = len(t_all)
-    gap_at = k0 + 1 + np.flatnonzero(np.diff(t_all[k0:]) > max_gap_s)
-    if on_gap == "stop" and len(gap_at):
-        raise InputError(
-            _gap_message(rec, int(gap_at[0]), t_all, max_gap_s) + ": the replay would integrate across it "
-            "(--on-gap restart restarts the INS from its last estimate instead)"
-        )
     mag_t, mag = rec.mag_t, rec.mag_b_nt
+    n = len(t_all)
+    # a streamed CSV (open_log): its later chunks are read as the replay reaches them, the last sample of one
+    # chunk carried as the first of the next (the loop below sees the same samples, indices rebased)
+    t_stop = float(imu.t[k0]) + duration_s + _TOL if duration_s is not None else math.inf
+    rest = rec.rest if k_end == len(imu) else None
+    ahead = next(rest, None) if rest is not None else None
+    row0 = 0  # samples of the log before t_all[0]
+
+    def gaps_in(k_from: int) -> np.ndarray:
+        gap_at = k_from + 1 + np.flatnonzero(np.diff(t_all[k_from:]) > max_gap_s)
+        if on_gap == "stop" and len(gap_at):
+            raise InputError(
+                _gap_message(rec, int(gap_at[0]), t_all, max_gap_s, row0) + ": the replay would integrate across "
+                "it (--on-gap restart restarts the INS from its last estimate instead)"
+            )
+        return gap_at
+
+    gap_at = gaps_in(k0)
     j = int(np.searchsorted(mag_t, t_all[k0], side="right"))
     last_reading = -math.inf
     n_readings = 0
@@ -776,11 +930,11 @@ def replay(
         j_after = int(np.searchsorted(mag_t, t_all[k] - _TOL, side="left"))
         dropped_in_gaps += max(0, j_after - j)
         j = max(j, j_after)
-        gaps.append({"row": k + 1, "t_before": float(t_all[k - 1]), "t_after": float(t_all[k]), "gap_s": gap,
+        gaps.append({"row": row0 + k + 1, "t_before": float(t_all[k - 1]), "t_after": float(t_all[k]), "gap_s": gap,
                      "sigma_m": sigma})  # fmt: skip
         log.warning(
             "%s: INS restarted from the last estimate, position sigma now %.0f m",
-            _gap_message(rec, k, t_all, max_gap_s),
+            _gap_message(rec, k, t_all, max_gap_s, row0),
             sigma,
         )
 
@@ -790,79 +944,101 @@ def replay(
     t_next = t_all[k0] + output_dt
     ig = 0
     k = k0 + 1
-    while k < n:
-        if bh is None and not takes_readings and getattr(pipe, "can_push_outputs", False):
-            # free inertial: the samples up to the next gap in chunks, the output samples marked, in one compiled
-            # call each (OnlinePipeline.push_imu_outputs: the same numbers as the general path below)
-            b = min(int(gap_at[ig]) if ig < len(gap_at) else n, k + FAST_CHUNK)
+    t_first, samples_before = float(t_all[k0]), k0
+    while True:
+        while k < n:
+            if bh is None and not takes_readings and getattr(pipe, "can_push_outputs", False):
+                # free inertial: the samples up to the next gap in chunks, the output samples marked, in one compiled
+                # call each (OnlinePipeline.push_imu_outputs: the same numbers as the general path below)
+                b = min(int(gap_at[ig]) if ig < len(gap_at) else n, k + FAST_CHUNK)
+                if b > k:
+                    idx: list[int] = []
+                    kk = k
+                    while True:
+                        e = max(kk, int(np.searchsorted(t_all, t_next - _TOL, side="left")))
+                        if e >= b:
+                            break
+                        idx.append(e - k)
+                        t_next += output_dt * max(1.0, math.floor((float(t_all[e]) - t_next) / output_dt + _TOL) + 1.0)
+                        kk = e + 1
+                    rows = pipe.push_imu_outputs(t_all[k:b], gyro[k:b], accel[k:b], np.asarray(idx, dtype=np.int64))
+                    outs.add_rows(rows, pipe.fuser.monitor.hpl)
+                    j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] - _TOL, side="left")))
+                    if idx and idx[-1] == b - 1 - k:  # an output sample: the magnetometer samples at its time are past
+                        j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] + _TOL, side="right")))
+                    if progress is not None:
+                        progress(b - k)
+                    k = b
+                    continue
+            # the next sample that needs handling: a gap, an output, a reading; the samples before it, and the sample
+            # itself unless it ends a gap or a reading falls inside its interval, go to the pipeline in one call
+            e_gap = int(gap_at[ig]) if ig < len(gap_at) else n
+            e_read, inside = next_reading()
+            e = min(e_gap, max(k, int(np.searchsorted(t_all, t_next - _TOL, side="left"))), max(k, e_read))
+            alone = e >= n or e == e_gap or (e == e_read and inside)
+            b = e if alone else e + 1
             if b > k:
-                idx: list[int] = []
-                kk = k
-                while True:
-                    e = max(kk, int(np.searchsorted(t_all, t_next - _TOL, side="left")))
-                    if e >= b:
-                        break
-                    idx.append(e - k)
-                    t_next += output_dt * max(1.0, math.floor((float(t_all[e]) - t_next) / output_dt + _TOL) + 1.0)
-                    kk = e + 1
-                rows = pipe.push_imu_outputs(t_all[k:b], gyro[k:b], accel[k:b], np.asarray(idx, dtype=np.int64))
-                outs.add_rows(rows, pipe.fuser.monitor.hpl)
+                holds = None
+                if bh is not None:
+                    hs = [baro_height(float(t)) for t in t_all[k:b]]
+                    if bh is not None and any(h is not None for h in hs):
+                        cur = getattr(pipe.fuser, "altitude_hold_m", None)
+                        holds = np.empty(b - k)
+                        for i, h in enumerate(hs):
+                            cur = h if h is not None else cur
+                            holds[i] = cur
+                        baro_applied = True
+                pipe.push_imu_batch(t_all[k:b], gyro[k:b], accel[k:b], altitude_hold=holds)
                 j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] - _TOL, side="left")))
-                if idx and idx[-1] == b - 1 - k:  # an output sample: the magnetometer samples at its time are past
-                    j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] + _TOL, side="right")))
                 if progress is not None:
                     progress(b - k)
-                k = b
-                continue
-        # the next sample that needs handling: a gap, an output, a reading; the samples before it, and the sample
-        # itself unless it ends a gap or a reading falls inside its interval, go to the pipeline in one call
-        e_gap = int(gap_at[ig]) if ig < len(gap_at) else n
-        e_read, inside = next_reading()
-        e = min(e_gap, max(k, int(np.searchsorted(t_all, t_next - _TOL, side="left"))), max(k, e_read))
-        alone = e >= n or e == e_gap or (e == e_read and inside)
-        b = e if alone else e + 1
-        if b > k:
-            holds = None
-            if bh is not None:
-                hs = [baro_height(float(t)) for t in t_all[k:b]]
-                if bh is not None and any(h is not None for h in hs):
-                    cur = getattr(pipe.fuser, "altitude_hold_m", None)
-                    holds = np.empty(b - k)
-                    for i, h in enumerate(hs):
-                        cur = h if h is not None else cur
-                        holds[i] = cur
+                if b >= n and (ahead is None or e >= n):
+                    break  # (the last sample of a chunk that is an event is handled here, as any other sample)
+            k = e
+            t = float(t_all[k])
+            if not alone:
+                pass  # pushed with the run above
+            elif ig < len(gap_at) and gap_at[ig] == k:
+                ig += 1
+                baro_height(t)  # keep the barometer fed; the new pipeline holds the estimate's height
+                restart(k)
+            else:
+                h_baro = baro_height(t)
+                if h_baro is not None and hold_height(pipe, h_baro):
                     baro_applied = True
-            pipe.push_imu_batch(t_all[k:b], gyro[k:b], accel[k:b], altitude_hold=holds)
-            j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] - _TOL, side="left")))
-            if progress is not None:
-                progress(b - k)
-            if b >= n:
-                break
-        k = e
-        t = float(t_all[k])
-        if not alone:
-            pass  # pushed with the run above
-        elif ig < len(gap_at) and gap_at[ig] == k:
-            ig += 1
-            baro_height(t)  # keep the barometer fed; the new pipeline holds the estimate's height
-            restart(k)
-        else:
-            h_baro = baro_height(t)
-            if h_baro is not None and hold_height(pipe, h_baro):
-                baro_applied = True
-            while j < len(mag_t) and mag_t[j] < t - _TOL:  # strictly inside the sample: queued, applied at its time
+                while j < len(mag_t) and mag_t[j] < t - _TOL:  # strictly inside the sample: queued, applied at its time
+                    reading(j)
+                    j += 1
+                pipe.push_imu(t, gyro[k], accel[k])
+            while j < len(mag_t) and mag_t[j] <= t + _TOL:  # at the sample time (the bridge's case)
                 reading(j)
                 j += 1
-            pipe.push_imu(t, gyro[k], accel[k])
-        while j < len(mag_t) and mag_t[j] <= t + _TOL:  # at the sample time (the bridge's case)
-            reading(j)
-            j += 1
-        if t >= t_next - _TOL:
-            record()
-            t_next += output_dt * max(1.0, math.floor((t - t_next) / output_dt + _TOL) + 1.0)
-        if progress is not None and alone:
-            progress(1)
-        k += 1
+            if t >= t_next - _TOL:
+                record()
+                t_next += output_dt * max(1.0, math.floor((t - t_next) / output_dt + _TOL) + 1.0)
+            if progress is not None and alone:
+                progress(1)
+            k += 1
+        if ahead is None:
+            break
+        # the next chunk, this one's last sample carried as its first row (every sample up to it has been pushed)
+        nxt, ahead = ahead, next(rest, None)
+        last = [t_all[-1:], gyro[-1], accel[-1]] + ([mag[-1]] if len(mag_t) else [])
+        a_cur = np.concatenate([np.concatenate(last)[None, :], nxt])
+        if a_cur[-1, 0] > t_stop:
+            a_cur = a_cur[: int(np.searchsorted(a_cur[:, 0], t_stop, side="right"))]
+            ahead = None
+        row0 += n - 1
+        j = max(j - (n - 1), 0) if len(mag_t) else 0
+        t_all, gyro, accel = a_cur[:, 0], a_cur[:, 1:4], a_cur[:, 4:7]
+        if len(mag_t):
+            mag_t, mag = a_cur[:, 0], a_cur[:, 7:10]
+        n = len(t_all)
+        gap_at = gaps_in(0)
+        ig = 0
+        k = 1
+    if rest is not None:
+        rest.close()
     if outs.last_t < t_all[-1] - _TOL:
         record()
     fixes.extend(pipe.fixes)
@@ -887,9 +1063,9 @@ def replay(
         out[:, 11:13].copy(),
         fixes,
         innovations,
-        n - k0 - 1,
+        row0 + n - 1 - samples_before,
         n_readings,
-        float(t_all[-1] - t_all[k0]),
+        float(t_all[-1]) - t_first,
         init_source,
         covers,
         err,
