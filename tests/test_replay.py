@@ -928,3 +928,30 @@ def test_streamed_csv_names_a_bad_row_deep_in_a_later_chunk(sim, tmp_path, capsy
         assert replay_mod.open_log(bad).rest is not None  # the first chunk is fine: streamed
         err = _assert_fails(capsys, tmp_path, bad, f"--init={INIT}", "--date", DATE, "--fusion", "ukf", match=match)
         assert f"{bad}: " in err
+
+
+def test_ukf_csv_replay_imports_no_scipy_stats(sim, tmp_path):
+    """A UKF replay of a CSV imports no scipy.stats (filterpy's modules get a lazy ``filterpy.stats.logpdf``, ~30 MB
+    of a 1 M-row replay's memory), and filterpy's own logpdf still gives scipy's numbers, the real module loaded at
+    its first call."""
+    import subprocess
+    import sys
+
+    log = tmp_path / "short.csv"
+    _sim_csv(sim, log)
+    code = (
+        "import sys, json\nimport numpy as np\nfrom magnav_ins.cli import main\n"
+        f"rc = main(['replay', {str(log)!r}, '--map', {MAP!r}, '--init={INIT}', '--fusion', 'ukf', "
+        f"'--date', {DATE!r}, '--quiet', '--reading-interval', '0.5', '--out', {str(tmp_path / 'o.csv')!r}])\n"
+        "before = 'scipy.stats' in sys.modules\n"
+        "from filterpy.kalman import UKF\n"
+        "x, m, P = np.array([1.0, -2.0]), np.array([0.5, 0.0]), np.array([[2.0, 0.3], [0.3, 1.0]])\n"
+        "lazy = float(UKF.logpdf(x, m, P))\n"
+        "from scipy.stats import multivariate_normal\n"
+        "print(json.dumps([rc, before, lazy, float(multivariate_normal.logpdf(x, m, P))]))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    rc, stats_before, lazy, real = json.loads(out.stdout.splitlines()[-1])
+    assert rc == 0 and not stats_before
+    assert lazy == pytest.approx(real, rel=1e-12)
+    assert len(_read_traj(tmp_path / "o.csv")["t"]) > 80

@@ -61,7 +61,8 @@ from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage, stats
+from scipy import ndimage
+from scipy.special import gammaincinv
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
@@ -583,7 +584,7 @@ class LikelihoodMatcher:
         phi = 1.0
         if np.all(np.isfinite(resid)):
             chi2, dof = whitened_misfit(resid, sigma, tr)
-            if dof > 0 and chi2 > float(stats.chi2.ppf(MISFIT_PROBABILITY, dof)):
+            if dof > 0 and chi2 > float(2.0 * gammaincinv(dof / 2.0, MISFIT_PROBABILITY)):  # chi2.ppf's formula
                 phi = chi2 / dof
         return float(kappa * phi), topup * phi
 

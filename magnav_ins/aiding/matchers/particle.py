@@ -92,7 +92,7 @@ from typing import Any
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy.special import gammaincinv
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
@@ -553,7 +553,7 @@ class ParticleFilter:
         z = r @ (ci @ mean - np.linalg.solve(p0, mu0))
         n_nis = float(state.extra.get("nis_n", 0.0))
         nis = float(state.extra.get("nis_sum", 0.0))
-        if n_nis > 0 and nis > float(stats.chi2.ppf(MISFIT_PROBABILITY, n_nis)):
+        if n_nis > 0 and nis > float(2.0 * gammaincinv(n_nis / 2.0, MISFIT_PROBABILITY)):  # chi2.ppf's formula
             r = r * (nis / n_nis)  # the readings missed their forecasts by more than the model allows
         r = _cramer_rao_floor(r, _fisher_bound(state.fisher, self.level_sigma is None))
         sig = float(np.sqrt(np.linalg.eigvalsh(r)[-1]))
