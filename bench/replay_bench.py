@@ -9,7 +9,7 @@ layer (Osborne: median 35 nT, 200 m correlation), which the MLR likelihood carri
 "honest fix covariances from the map's error"): although the readings are drawn from the map itself (+ 1 nT), a
 30-reading window (600 m) then holds about three independent looks and its likelihood is wider than the UKF's search
 window, so no fix is issued (0 of 15: "reaches the edge of the search window" 10, "ambiguous" 5; 7 issued / 5
-accepted before that commit, 13 / 9 with the matchers of the README's first table). The honest answer for a map
+accepted before that commit; the README's first table, 13 / 9, came from an earlier version of this flight). The honest answer for a map
 with that error, not a replay defect; the throughput part below sets the layer to zero instead.
 
 Throughput (``throughput``): a racetrack (16 x 8 km legs, 40 m/s, 400 m) over the same map, tactical IMU (seed 7)
