@@ -34,7 +34,9 @@ At each update:
    likelihood alone, so the fix it goes with is then the likelihood's too, not pulled towards the prior, whose
    information the filter adds itself.
 
-   The grid quantisation ``step^2 / 12`` is added to each. What R contains: the sensor noise and the map error
+   The grid quantisation ``step^2 / 12`` is added to each, except to Storms' rule with ``"lobe"`` lines when the
+   likelihood holds the node error (below): ``s^2`` then has ``|grad|^2 step^2 / 12``, which widens the lobe by at
+   least ``step^2 / 12`` in each direction, so it is in R once already. What R contains: the sensor noise and the map error
    (through the likelihood's ``s^2``), the spread of the likelihood along the two lines through the peak, and the
    node quantisation; not the map error's correlation between successive fixes (a fix every 1.5 s at 0.5 m/s
    reads the map 0.75 m further on).
@@ -422,7 +424,9 @@ class BayesGridMatcher:
             sig_n = _tail_sigma(src[:, kp[1]], n_ax, n_fix, self.tail)
             sig_e = _tail_sigma(src[kp[0], :], e_ax, e_fix, self.tail)
             R = np.diag([sig_n**2, sig_e**2])
-        R = R + np.eye(2) * step**2 / 12.0
+        node_in_lik = np.isfinite(g_rms) and g_rms > 0
+        if not (self.line_extent == "lobe" and self.covariance == "storms" and node_in_lik):
+            R = R + np.eye(2) * step**2 / 12.0  # (the lobe of a likelihood holding the node error has it already)
         if self.cover_rivals and self.rivals_of == "likelihood":  # the likelihood's own peaks in the window
             lk = np.exp(loglik - np.max(loglik))
             lmax = (lk == ndimage.maximum_filter(lk, size=3, mode="constant", cval=0.0)) & (lk >= self.peak_ratio)
