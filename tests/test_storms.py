@@ -372,3 +372,23 @@ def test_fix_at_likelihood_puts_the_fix_on_the_likelihood_peak_the_prior_picked(
     assert np.diag(lik.cov_ne) == pytest.approx([1.0 + 0.05**2 / 12, 4.0 + 0.05**2 / 12], rel=0.02)
     with pytest.raises(ConfigError, match="fix_at"):
         BayesGridMatcher(fix_at="prior")
+
+
+def test_lobe_lines_count_the_grid_quantisation_once():
+    """Linear field (a = 10, b = 5 nT/m) on a coarse 0.5 m grid, reading sigma 10 nT: the likelihood holds the node
+    error |grad|^2 step^2 / 12 = 125 x 0.25 / 12 = 2.60 nT^2, so its lines are Gaussian with sigma^2 = (100 + 2.60)
+    / a^2 = 1.026 m^2 (north) and / b^2 = 4.104 m^2 (east): the quantisation is in them already. The window lines add
+    step^2 / 12 = 0.0208 m^2 on top (as before); the lobe lines do not (the lines of a linear field have no minimum,
+    so both run over the same nodes and differ by that term only)."""
+    n_ax = np.arange(0.0, 40.0, 0.5)
+    gn, ge = np.meshgrid(n_ax, n_ax, indexing="ij")
+    fmap = GridMap(n_ax, n_ax, np.stack([10.0 * gn, 5.0 * ge, np.zeros_like(gn)], axis=-1), kind=KIND_V,
+                   frame="local", altitude_m=0.0, origin=ORIGIN)  # fmt: skip
+    truth = np.array([20.0, 17.0])
+    kw = {"window_sigma": 4.0, "map_sigma": 0.0, "tail": 0.1587, "quantisation": 0.0, "guards": False}
+    win = _one_fix(BayesGridMatcher(line_extent="window", **kw), fmap, truth, truth, 3.0)
+    lobe = _one_fix(BayesGridMatcher(line_extent="lobe", **kw), fmap, truth, truth, 3.0)
+    assert np.diag(win.cov_ne - lobe.cov_ne) == pytest.approx([0.25 / 12, 0.25 / 12], rel=1e-6)
+    # the 16 % tail rule on nodes 0.5 m apart: within 2 % for the 2 m east sigma, 6 % for the 1 m north one
+    assert lobe.cov_ne[1, 1] == pytest.approx(102.6 / 25.0, rel=0.02)
+    assert lobe.cov_ne[0, 0] == pytest.approx(102.6 / 100.0, rel=0.07)
