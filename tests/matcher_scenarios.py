@@ -231,17 +231,24 @@ def error_field(
 
 
 def section_trial(
-    m: Any, ef: ErrorField, fmap: GridMap, rng: np.random.Generator, nz: int = 30, step_m: float = 10.0
+    m: Any,
+    ef: ErrorField,
+    fmap: GridMap,
+    rng: np.random.Generator,
+    nz: int = 30,
+    step_m: float = 10.0,
+    level_sigma: float = 0.0,
 ) -> tuple[Fix, np.ndarray]:
     """A straight section of ``nz`` readings ``step_m`` apart along a random heading, read from the TRUTH (noise
-    2 nT), matched against ``fmap``; INS offset ~ N(0, 15^2 I) m."""
+    2 nT) plus a constant level offset ~ N(0, ``level_sigma``^2) drawn per section, matched against ``fmap``; INS
+    offset ~ N(0, 15^2 I) m."""
     sig, ps = 2.0, 15.0
     head = rng.uniform(0, 2 * np.pi)
     start = rng.uniform(400.0, 1100.0, 2)
     s = step_m * np.arange(nz)
     true_ne = start + np.column_stack([s * np.cos(head), s * np.sin(head)])
     lat, lon = latlon(ef.truth, true_ne[:, 0], true_ne[:, 1])
-    z = ef.truth.value(lat, lon) + rng.normal(0.0, sig, nz)
+    z = ef.truth.value(lat, lon) + rng.normal(0.0, sig, nz) + (rng.normal(0.0, level_sigma) if level_sigma else 0.0)
     P = np.eye(2) * ps**2
     off = rng.multivariate_normal([0, 0], P)
     w = make_window(fmap, np.arange(nz, dtype=float), true_ne, z, sig, KIND_TF, off, P, np.zeros(2))

@@ -134,6 +134,43 @@ def test_likelihood_matchers_honest_with_the_error_layer_only(kind, section_maps
     assert without > 5.0, (with_layer, without)
 
 
+@pytest.mark.parametrize("kind", ["ml", "mlr", "abl"])
+def test_likelihood_matchers_honest_with_a_level_offset_only_with_the_level_term(kind, section_maps):
+    """Readings off the map by a constant level (a per-section N(0, 30^2) nT draw: a map levelled otherwise, as the
+    Osborne tie lines sit -24 nT off its flight lines) on top of the correlated map error the layer states: with the
+    map's level prior (``metadata["level_sigma"]`` = 30 nT) marginalised, the fixes' NEES is within [1, 3]; with the
+    level term off (``level_sigma = 0``, the absolute-level likelihood) the section is slid to where the map matches
+    the offset readings and the fixes are over-confident."""
+    ef = section_maps
+    fmap = ef.with_layer.with_values(ef.with_layer.values)
+    fmap.metadata.update(level_sigma=30.0, level_sigma_source="stated by the test")
+    assert me.resolve_level(fmap).sigma == 30.0 and me.resolve_level(fmap, 0.0).sigma == 0.0
+
+    def trial(m, fmap, rng):
+        return section_trial(m, ef, fmap, rng, level_sigma=30.0)
+
+    with_level, n1 = _nees(kind, {}, fmap, trial, 40)
+    without, n2 = _nees(kind, {"level_sigma": 0.0}, fmap, trial, 40)
+    assert n1 >= 28 and n2 >= 20, (n1, n2)
+    assert 1.0 <= with_level <= 3.0, (with_level, without)
+    assert without > 5.0, (with_level, without)
+
+
+def test_level_fraction_is_the_marginalised_level():
+    """|r - gamma mean(r)|^2 / s2 equals r' (s2 I + v 1 1')^-1 r (Sherman-Morrison), and the transform says so."""
+    rng = np.random.default_rng(8)
+    k, s2, v = 25, 4.0, 90.0
+    r = rng.normal(0, 3, k) + 7.0
+    g = me.level_fraction(v, s2, k)
+    lhs = float(np.sum((r - g * r.mean()) ** 2) / s2)
+    rhs = float(r @ np.linalg.solve(s2 * np.eye(k) + v * np.ones((k, k)), r))
+    assert lhs == pytest.approx(rhs, rel=1e-10)
+    t = me.section_transform(k, demean=False, difference=False, level=g)
+    np.testing.assert_allclose(t.T @ t / s2, np.linalg.inv(s2 * np.eye(k) + v * np.ones((k, k))), atol=1e-12)
+    assert me.level_fraction(0.0, s2, k) == 0.0 and me.level_fraction(np.inf, s2, k) == 1.0
+    assert me.level_fraction(v, s2, 1) == 0.0
+
+
 @pytest.mark.parametrize("kind, config", [("particle_ins", {"ins_sigma": 0.2}), ("particle", {"accel_sigma": 0.1})])
 def test_particle_filters_honest_with_the_error_layer_only(kind, config, particle_maps):
     ef = particle_maps

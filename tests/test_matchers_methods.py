@@ -463,6 +463,7 @@ def test_matchers_on_a_geodetic_grid_map():
     fmap = GridMap(
         lat0 + n_ax / r_n, lon0 + e_ax / (r_e * np.cos(lat0)), vals, kind=KIND_G, frame="geodetic", altitude_m=0.0
     ).with_error_layer(0.0, 300.0)  # the readings are drawn from this map: it is exact
+    fmap.metadata["level_sigma"] = 0.0  # ... and on its level
     # PMHT: 30 scans 71 m apart, inside the 3 km map
     v = np.array([5.0, 5.0])
     truth = np.array([-800.0, -700.0]) + v * 10.0 * np.arange(30)[:, None]  # about the grid centre

@@ -101,6 +101,10 @@ def map_summary(fmap: Any) -> dict[str, Any]:
         }
     else:
         out["error_layer"] = None
+    from ..aiding.matchers.map_error import resolve_level
+
+    lvl = resolve_level(fmap)
+    out["level_sigma"] = {"sigma": lvl.sigma, "source": lvl.source, "detail": lvl.detail}
     if fmap.frame == "local":
         out["origin_deg_m"] = [fmap.origin[0] * RAD_TO_DEG, fmap.origin[1] * RAD_TO_DEG, fmap.origin[2]]
         w, e, s, n = fmap.region
@@ -136,6 +140,7 @@ def run_info(args: argparse.Namespace) -> int:
         ("values", f"{s['value_range'][0]:.3f} .. {s['value_range'][1]:.3f} {s['unit']} (rms {s['value_rms']:.3f})"),
         ("no data", f"{100 * s['no_data_fraction']:.1f} % of nodes"),
         ("error layer", _error_text(s)),
+        ("level offset", _level_text(s)),
     ]
     if "used_as" in s:
         rows.insert(4, ("used", s["used_as"]))
@@ -155,6 +160,16 @@ def _error_text(s: dict[str, Any]) -> str:
     return (
         f"1-sigma median {e['sigma_median']:.3g}, 90 % {e['sigma_p90']:.3g}, range {e['sigma_range'][0]:.3g} .. "
         f"{e['sigma_range'][1]:.3g} {s['unit']}; correlation length {e['correlation_m']:.0f} m; {e['source']}"
+    )
+
+
+def _level_text(s: dict[str, Any]) -> str:
+    lv = s["level_sigma"]
+    where = "stated in the map" if lv["source"] == "map" else "the matchers' stated default"
+    detail = f": {lv['detail']}" if lv["detail"] else ""
+    return (
+        f"1-sigma {lv['sigma']:.3g} {s['unit']} ({where}{detail}), the prior of the constant offset between a "
+        "flight's readings and the map that the matchers marginalise"
     )
 
 

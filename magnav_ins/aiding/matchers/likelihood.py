@@ -80,8 +80,11 @@ from ._local import (
     window_axes,
 )
 from .map_error import (
+    LevelModel,
     MapErrorModel,
+    level_fraction,
     off_map_loglik,
+    resolve_level,
     resolve_map_error,
     section_covariance,
     section_transform,
@@ -143,6 +146,13 @@ class Section:
     t: FloatArray | None = None
     drift_mps: FloatArray | None = None
     tau: FloatArray | None = None
+    level: LevelModel | None = None
+    level_frac: float = 0.0
+
+    @property
+    def level_var(self) -> float:
+        """Variance (unit^2) of the section's constant level offset (0 without the level term)."""
+        return 0.0 if self.level is None else float(self.level.sigma) ** 2
 
 
 @dataclass
@@ -197,6 +207,7 @@ class LikelihoodMatcher:
     window_growth: int = 2
     off_map: str = "impossible"
     max_off_map_mass: float = 0.5
+    level_sigma: float | None = None
     name: str = ""
     _last_fix_t: float = field(default=-np.inf, init=False, repr=False, compare=False)
 
@@ -215,6 +226,8 @@ class LikelihoodMatcher:
             raise ConfigError(
                 "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m >= 0"
             )
+        if self.level_sigma is not None and not self.level_sigma >= 0:
+            raise ConfigError(f"likelihood matcher 'level_sigma': expected >= 0 or None, got {self.level_sigma!r}")
         if self.off_map not in ("impossible", "unknown"):
             raise ConfigError(f"likelihood matcher 'off_map': expected 'impossible' or 'unknown', got {self.off_map!r}")
         if not self.name:
@@ -260,10 +273,14 @@ class LikelihoodMatcher:
         t_sec = np.asarray(rd.t, dtype=float)[good]
         drift = ins_drift_rate(t_sec, cov[good] if cov.ndim == 3 else None) if self.track_error else np.zeros(2)
         tau = _section_times(t_sec, dn, de) if self.track_error else None
-        sec = Section(dn, de, z, h_last, float(rd.sigma), s2_base, err, t_sec, drift, tau)
+        # the level offset (module docstring): none when the section is differenced (it cancels) or demeaned
+        lvl = None if ((self.difference and nz > 1) or self.demean) else resolve_level(fmap, self.level_sigma)
+        lv = 0.0 if lvl is None else float(lvl.sigma) ** 2
+        sec = Section(dn, de, z, h_last, float(rd.sigma), s2_base, err, t_sec, drift, tau, lvl)
         if _is_track(fmap):
-            out = self._track_surface(fmap, frame, z, dn, de, half_n, half_e, s2_base)
-            return out if isinstance(out, str) else replace(out, section=sec)
+            frac = 1.0 if self.demean else level_fraction(lv, s2_base, nz)
+            out = self._track_surface(fmap, frame, z, dn, de, half_n, half_e, s2_base, frac)
+            return out if isinstance(out, str) else replace(out, section=replace(sec, level_frac=frac))
         s2 = s2_base
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
         g_rms = _gradient_rms(native, fmap, window)
@@ -289,6 +306,7 @@ class LikelihoodMatcher:
                 s2 = s2 + g_rms**2 * step**2 / 12.0
             ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
             if nz == 1 and not (self.demean or self.difference):  # the fast path: one compiled pass
+                s2 = s2 + lv  # one reading: its level offset is more variance
                 l2, kmax, variability = grid_scan1(v_last, np.ascontiguousarray(z[0]), s2, ic, jc)
                 return Surface(
                     frame, l2.ravel(), n_ax, e_ax, l2.shape, step, float(variability), s2, (half_n, half_e), int(kmax),
@@ -311,16 +329,20 @@ class LikelihoodMatcher:
                 v3, y0, dy, x0, dx = grid
                 pos = np.column_stack([dn + frame.n0, de + frame.e0])  # type: ignore[union-attr]
                 s2r = 2.0 * s2 if (self.difference and nz > 1) else s2
+                frac = 1.0 if self.demean else level_fraction(lv, s2, nz)
+                if nz == 1:
+                    s2r = s2r + lv
                 l2 = section_loglik(
-                    v3, y0, dy, x0, dx, pos, np.ascontiguousarray(z), n_ax, e_ax, s2r, self.demean, self.difference
+                    v3, y0, dy, x0, dx, pos, np.ascontiguousarray(z), n_ax, e_ax, s2r, frac, self.difference
                 )
                 last = frame.sample(*np.meshgrid(n_ax, e_ax, indexing="ij"), h_last)
                 last = np.ascontiguousarray(last.reshape(n_ax.size, e_ax.size, ncomp))
                 ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
                 variability = float(grid_variability(last, ic, jc))
                 return Surface(
-                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, variability, s2r, (half_n, half_e), section=sec
-                )
+                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, variability, s2r, (half_n, half_e),
+                    section=replace(sec, level_frac=frac),
+                )  # fmt: skip
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m = frame.sample(dn[:, None, None] + gn[None], de[:, None, None] + ge[None], h_last)
             m = m.reshape(nz, gn.size, ncomp)
@@ -328,15 +350,19 @@ class LikelihoodMatcher:
                 s2 = s2 + g_rms**2 * step**2 / 12.0
             ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
             variability = float(grid_variability(np.ascontiguousarray(m[-1].reshape(gn.shape + (ncomp,))), ic, jc))
+        frac = 1.0 if self.demean else level_fraction(lv, s2, nz)
+        if nz == 1:
+            s2 = s2 + lv
         zz, mm = z[:, None, :], m
         if self.difference and len(z) > 1:
             zz, mm = np.diff(zz, axis=0), np.diff(mm, axis=0)
             s2 = 2.0 * s2
-        if self.demean and len(zz) > 1:
-            zz = zz - zz.mean(axis=0, keepdims=True)
-            mm = mm - mm.mean(axis=0, keepdims=True)
+        if frac > 0 and len(zz) > 1:
+            zz = zz - frac * zz.mean(axis=0, keepdims=True)
+            mm = mm - frac * mm.mean(axis=0, keepdims=True)
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
+        sec = replace(sec, level_frac=frac)
         return Surface(frame, logl, n_ax, e_ax, gn.shape, step, variability, s2, (half_n, half_e), section=sec)
 
     def _track_surface(
@@ -349,6 +375,7 @@ class LikelihoodMatcher:
         half_n: float,
         half_e: float,
         s2_base: float,
+        level_frac: float = 0.0,
     ) -> Surface | str:
         """Likelihood at the points of a road map (Shockley 003 sec. 4.3-4.5): the section of readings is slid
         along the road; reading k sits ``d_k`` metres (INS-travelled distance to the last reading) before the
@@ -389,9 +416,9 @@ class LikelihoodMatcher:
         if self.difference and nz > 1:
             zz, mm = np.diff(zz, axis=0), np.diff(mm, axis=0)
             s2 = 2.0 * s2
-        if self.demean and len(zz) > 1:
-            zz = zz - zz.mean(axis=0, keepdims=True)
-            mm = mm - mm.mean(axis=0, keepdims=True)
+        if level_frac > 0 and len(zz) > 1:
+            zz = zz - level_frac * zz.mean(axis=0, keepdims=True)
+            mm = mm - level_frac * mm.mean(axis=0, keepdims=True)
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
         step = float(np.median(np.diff(s_at)[np.diff(seg_run) == 0])) if len(s_at) > 1 else 1.0
@@ -570,14 +597,16 @@ class LikelihoodMatcher:
         lat, lon = frame.to_latlon(pn, pe)
         sm = sec.error.sigma_at(lat, lon)
         diff = self.difference and k > 1
-        node_var = max(surf.sigma2 / (2.0 if diff else 1.0) - sec.s2_base, 0.0)
+        lv = sec.level_var
+        node_var = max(surf.sigma2 / (2.0 if diff else 1.0) - sec.s2_base - (lv if k == 1 else 0.0), 0.0)
         sigma = section_covariance(pn, pe, sm, sec.sigma_sensor, sec.error.correlation_m)
         sigma[np.diag_indices(k)] += node_var
+        sigma += lv  # the level offset, sigma_b^2 1 1' (module docstring)
         if sec.drift_mps is not None and sec.tau is not None and sec.tau.size == k:
             for a in range(2):  # INS drift over the section: delta p_k = dv (t_k - t_K), rank one per axis
                 g = jac[:, :, a].sum(axis=1) * sec.tau * float(sec.drift_mps[a])
                 sigma += np.outer(g, g)
-        tr = section_transform(k, self.demean, self.difference)
+        tr = section_transform(k, self.demean, self.difference, sec.level_frac)
         kappa, topup = temperature_and_topup(jac, sigma, surf.sigma2, tr)
         resid = sec.z - m0
         phi = 1.0
@@ -612,7 +641,7 @@ def _flat_sigma2(surf: Surface, difference: bool) -> float:
     sec = surf.section
     if sec is None:
         return float(surf.sigma2)
-    map_var = max(sec.s2_base - sec.sigma_sensor**2, 0.0)
+    map_var = max(sec.s2_base - sec.sigma_sensor**2, 0.0) + (sec.level_var if sec.dn.size == 1 else 0.0)
     k = 2.0 if (difference and sec.dn.size > 1) else 1.0
     return max(float(surf.sigma2) - k * map_var, k * sec.sigma_sensor**2)
 
