@@ -63,7 +63,9 @@ def exact(fmap: GridMap) -> GridMap:
     """The map with a zero error layer: a synthetic map whose readings are drawn from it is the truth, so the
     matchers must not add the default map error of a map that does not know its error (``map_error.py``)."""
     ell = float(fmap.metadata.get("correlation_length_m", 1.0)) * np.sqrt(2.0)  # the field's 1/e length
-    return fmap.with_error_layer(0.0, ell, "synthetic: exact")
+    out = fmap.with_error_layer(0.0, ell, "synthetic: exact")
+    out.metadata.update(level_sigma=0.0, level_sigma_source="synthetic: readings drawn from the map")
+    return out
 
 
 def flat_like(fmap: GridMap) -> GridMap:

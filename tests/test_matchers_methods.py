@@ -380,6 +380,7 @@ def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
     ramp, which a random walk of the same end sigma does not cover; the bound checks the gain, not consistency."""
     rng = np.random.default_rng(31)
     fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    fmap.metadata["level_sigma"] = 0.0  # readings drawn from this map: no level offset
     T, dt, sig, v = 30, 10.0, 0.5, np.array([12.0, 9.0])
     tt = dt * np.arange(T)
     P = np.array([np.eye(2) * (30.0 + 0.5 * t) ** 2 for t in tt])

@@ -27,12 +27,23 @@ The scan runs over a search window around the prior (the thesis' suggested impro
 half-width ``window_sigma`` times the prior 1-sigma, widened up to ``window_growth`` times by 2 while the
 likelihood's peak region reaches its edge) or over the whole grid map (``search_window=False``).
 
+Level offset (issue 13; ``level_sigma``). Readings and map may differ by a constant level ``b`` over the section
+(the map's levelling, diurnal variation, the platform's own field: Osborne's tie lines sit 17-30 nT below its flight
+lines), which is not a per-node map error. It is marginalised with the prior ``b ~ N(0, sigma_b^2)``,
+``sigma_b`` the map's level prior (:func:`~.map_error.resolve_level`: ``metadata["level_sigma"]``, else 10 % of the
+map's std; the option overrides it, 0 = absolute levels as in the thesis): by Sherman-Morrison the scan's
+``r' (s^2 I + sigma_b^2 1 1')^-1 r`` is ``|r - gamma mean(r)|^2 / s^2`` with ``gamma = 1 - sqrt(s^2 / (s^2 + K
+sigma_b^2))`` (:func:`~.map_error.level_fraction`), so the scan removes that fraction of the section mean from
+readings and map profile (``demean`` is ``gamma = 1``, a diffuse level; with ``demean`` or ``difference`` there is
+no level term, nothing is counted twice); the honest covariance below has ``sigma_b^2 1 1'`` in the section
+covariance and ``T = I - gamma / K 1 1'`` as the scan's transform. A single reading gets ``sigma_b^2`` as variance.
+
 What the fix covariance contains (issue 13; :mod:`.map_error`). The scan's likelihood uses the variance
 ``sigma_reading^2 + sigma_map^2`` (the map's error layer at the section, or ``map_sigma``, or the stated default)
 plus the node error ``|grad|^2 step^2 / 12``, as if the readings were independent. They are not: the map error is
 correlated over its correlation length, and the INS track the section is slid along drifts. So before its
 moments are taken the surface is divided by a temperature: the sandwich factor (White 1982) of the section's full
-residual covariance ``sigma_s^2 I + D C D + node error + G P_drift G'`` (map error correlation ``C``, INS drift
+residual covariance ``sigma_s^2 I + D C D + node error + sigma_b^2 1 1' + G P_drift G'`` (map error correlation ``C``, INS drift
 over the section from the growth of the window's covariances, :func:`ins_drift_rate`) against the scan's
 diagonal one, times the section's misfit chi-square per degree of freedom when that exceeds its 99 % quantile (the
 residuals at the fix are larger than the model says), times ``K / new readings`` when the window shares readings
@@ -174,7 +185,8 @@ class LikelihoodMatcher:
     ``map_correlation_m`` overrides the map's error correlation length (m); ``honest`` applies the temperature;
     ``ambiguity_mass`` (0.05; 1 = off); ``count_overlap``; ``track_error`` (INS drift in the section covariance);
     ``window_growth`` (widenings of the search window); ``off_map`` "impossible" | "unknown" and
-    ``max_off_map_mass`` (module docstring). The module docstring says what the covariance contains.
+    ``max_off_map_mass``; ``level_sigma`` the level offset's prior 1-sigma (None = the map's, 0 = none) (module
+    docstring). The module docstring says what the covariance contains.
 
     The matcher remembers the time of the last reading of its last issued fix (``count_overlap``): one instance
     serves one stream of windows (a window whose last reading is not newer starts a new stream)."""

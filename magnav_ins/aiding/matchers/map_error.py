@@ -20,6 +20,15 @@ is sampled where it was measured, not interpolated: without ``map_sigma`` it is 
 survey's figure, not a law: a map whose error is known
 should carry a layer, or the matcher should be given ``map_sigma``.
 
+Level offset (:func:`resolve_level`, :func:`level_fraction`). Besides the per-node error, a flight's readings may
+sit a constant level off the map (the survey's levelling against the flight, diurnal variation, the platform's own
+field): Osborne's tie lines are 17-30 nT (mean -24 nT) below its flight lines' levelling. That is not a random
+per-node error: counted as one (in the error layer's inflation, as until 2026-12) it makes a matcher over-cautious
+about the field's shape and over-confident about its level. The batch matchers marginalise it per section with the
+prior ``N(0, sigma_b^2)`` (ML / MLR / ABL, PMHT); the particle filters carry it as a state with a diffuse prior
+(``level_sigma``). ``sigma_b`` is the map's ``metadata["level_sigma"]`` (e.g. from a survey's tie-line crossovers),
+else :data:`DEFAULT_LEVEL_FRACTION_OF_STD` of the map's std.
+
 Correlation model. The map error is a zero-mean Gaussian process with the squared-exponential correlation
 ``rho(d) = exp(-(d / ell)^2)``: the correlation length ``ell`` (``GridMap.error_correlation_m``) is the lag where
 the correlation has fallen to 1/e, as :mod:`magnav_ins.maps.error_layer` measures it from the cross-validation
