@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from magnav_ins import cli
-from magnav_ins.core.errors import ConfigError, MapError
+from magnav_ins.core.errors import ConfigError, InputError, MapError
 from magnav_ins.core.frames import ned_to_geodetic
 from magnav_ins.core.types import FieldKind
 from magnav_ins.maps.build import gradient_magnitude, grid_survey
@@ -224,3 +224,35 @@ def test_rio_layer_is_honest_on_its_tie_lines(shared_data):
     z = (m.value(t.lat, t.lon) - t.value) / m.error_sigma_at(t.lat, t.lon)
     ok = np.isfinite(z)
     assert 0.7 < np.sqrt(np.mean(z[ok] ** 2)) < 1.6
+
+
+def test_crossover_level_of_tie_lines_offset_from_the_flight_lines(truth):
+    """E-W flight lines and N-S tie lines read from one truth, the tie lines +20 nT off (a levelling difference):
+    the crossover estimate (median per tie line of tie minus the nearest flight reading) finds the 20 nT, the map
+    stores it as metadata["level_crossover"], and the matchers' level prior is the larger of it and 10 % of the
+    map's std; a stated level_sigma wins."""
+    from dataclasses import replace
+
+    from magnav_ins.aiding.matchers.map_error import resolve_level
+    from magnav_ins.maps.build import _local, crossover_level_sigma
+
+    flights = _lines(truth, 400.0, step=20.0)
+    ties = _lines(truth, 1000.0, step=20.0, north_south=True, first_id=100)
+    ties = replace(ties, value=ties.value + 20.0)
+    s = Survey(
+        np.r_[flights.lat, ties.lat], np.r_[flights.lon, ties.lon], np.r_[flights.h, ties.h],
+        np.r_[flights.value, ties.value], flights.kind, np.r_[flights.line, ties.line], "synthetic",
+    )  # fmt: skip
+    n, e, _ = _local(s)
+    rms, lines, pairs = crossover_level_sigma(s, n, e, 15.0)
+    assert lines == ties.line_ids().size and pairs > 10 * lines
+    assert rms == pytest.approx(20.0, abs=0.5)
+    m = grid_survey(s, 50.0, error_folds=0)
+    assert m.metadata["level_crossover"]["rms"] == pytest.approx(rms, abs=1.0)
+    lvl = resolve_level(m)
+    assert lvl.source == "default" and lvl.sigma == pytest.approx(max(rms, 0.1 * np.nanstd(m.values)))
+    assert crossover_level_sigma(flights, *_local(flights)[:2], 15.0) is None  # no cross lines
+    stated = grid_survey(s, 50.0, error_folds=0, level_sigma=7.0)
+    assert (resolve_level(stated).sigma, resolve_level(stated).source) == (7.0, "map")
+    with pytest.raises(InputError, match="level_sigma"):
+        grid_survey(s, 50.0, error_folds=0, level_sigma=-1.0)

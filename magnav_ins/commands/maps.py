@@ -204,6 +204,15 @@ def _add_grid(map_sub: argparse._SubParsersAction) -> None:
         metavar="K",
         help="folds of the block cross-validation that estimates the map's error layer (0: no layer; default 5)",
     )
+    p.add_argument(
+        "--level-sigma",
+        type=float,
+        default=None,
+        metavar="S",
+        help="1-sigma (map unit) of a constant offset between a flight's readings and the map, stored with the map "
+        "for the matchers to marginalise (default: none stored; the matchers then use the larger of 10 %% of the map's "
+        "std and the survey's crossover level differences)",
+    )
     p.add_argument("--float32", action="store_true", help="store values as float32 (half the size)")
     p.add_argument("--out", default=None, metavar="MAP.nc", help="output NetCDF (default: SURVEY name + .nc here)")
     p.add_argument("--quiet", action="store_true", help="print nothing")
@@ -227,6 +236,8 @@ def run_grid(args: argparse.Namespace) -> int:
     from ..maps.io import parse_column_mapping, read_survey, select_lines, write_map
 
     log_to_stderr(args)
+    if args.level_sigma is not None and not (np.isfinite(args.level_sigma) and args.level_sigma >= 0):
+        raise InputError(f"--level-sigma: expected a number >= 0 (map unit), got {args.level_sigma}")
     exclude = _parse_ids(args.exclude_lines)
     src = Path(args.survey)
     out = check_output_file(Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc"))
@@ -255,7 +266,13 @@ def run_grid(args: argparse.Namespace) -> int:
     if args.error_folds < 0 or args.error_folds == 1:
         raise InputError(f"--error-folds: expected 0 (no error layer) or at least 2, got {args.error_folds}")
     fmap = grid_survey(
-        used, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem, error_folds=args.error_folds
+        used,
+        args.spacing,
+        exclude_lines=exclude,
+        method=args.method,
+        name=out.stem,
+        error_folds=args.error_folds,
+        level_sigma=args.level_sigma,
     )
     fmap.metadata["source"] = src.name
     fmap.metadata["heights"] = survey.heights

@@ -155,9 +155,12 @@ class LevelModel:
 
 def resolve_level(fmap: FieldMap, level_sigma: float | None = None) -> LevelModel:
     """The level-offset prior a matcher should use: ``level_sigma`` (map unit, >= 0; 0 switches the level term
-    off) overrides the map's own (``fmap.metadata["level_sigma"]``, written by
-    :func:`magnav_ins.maps.build.grid_survey` from the survey's crossovers or by the user), else the stated default
-    (:data:`DEFAULT_LEVEL_FRACTION_OF_STD` of the map's standard deviation; 0 for a map that is not a grid)."""
+    off) overrides the map's own (``fmap.metadata["level_sigma"]``, stated when gridding,
+    :func:`magnav_ins.maps.build.grid_survey`, or by the user), else the stated default:
+    :data:`DEFAULT_LEVEL_FRACTION_OF_STD` of the map's standard deviation (what a new flight may add: diurnal
+    variation, its platform's field), or the survey's own crossover level differences
+    (``metadata["level_crossover"]``, :func:`magnav_ins.maps.build.crossover_level_sigma`) when larger; 0 for a map
+    that is not a grid."""
     if level_sigma is not None:
         return LevelModel(float(level_sigma), "option")
     meta = getattr(fmap, "metadata", None) or {}
@@ -168,6 +171,10 @@ def resolve_level(fmap: FieldMap, level_sigma: float | None = None) -> LevelMode
         return LevelModel(0.0, "default", "not a grid")
     vals = np.asarray(getattr(fmap, "values", np.array([np.nan])), dtype=float)
     std = float(np.nanstd(vals)) if np.any(np.isfinite(vals)) else 0.0
+    xo = meta.get("level_crossover") if isinstance(meta, dict) else None
+    xo_rms = float(xo.get("rms", 0.0)) if isinstance(xo, dict) else 0.0
+    if np.isfinite(xo_rms) and xo_rms > DEFAULT_LEVEL_FRACTION_OF_STD * std:
+        return LevelModel(xo_rms, "default", f"the survey's crossover level differences ({xo.get('lines')} lines)")
     return LevelModel(
         DEFAULT_LEVEL_FRACTION_OF_STD * std, "default", f"{DEFAULT_LEVEL_FRACTION_OF_STD:g} x the map's std"
     )
