@@ -26,7 +26,8 @@ field): Osborne's tie lines are 17-30 nT (mean -24 nT) below its flight lines' l
 per-node error: counted as one (in the error layer's inflation, as until 2026-12) it makes a matcher over-cautious
 about the field's shape and over-confident about its level. The batch matchers marginalise it per section with the
 prior ``N(0, sigma_b^2)`` (ML / MLR / ABL, PMHT); the particle filters carry it as a state with a diffuse prior
-(``level_sigma``). ``sigma_b`` is the map's ``metadata["level_sigma"]`` (e.g. from a survey's tie-line crossovers),
+(``level_sigma``); ``bayes_grid`` (one reading per fix) has no level term: a level shared by successive fixes is
+not a per-fix variance, and would need a level state in the fuser. ``sigma_b`` is the map's ``metadata["level_sigma"]`` (e.g. from a survey's tie-line crossovers),
 else :data:`DEFAULT_LEVEL_FRACTION_OF_STD` of the map's std.
 
 Correlation model. The map error is a zero-mean Gaussian process with the squared-exponential correlation
