@@ -98,7 +98,7 @@ from typing import Any, ClassVar
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy.special import gammaincinv
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
@@ -743,7 +743,9 @@ class PMHTMatcher:
         si = np.linalg.inv(sig)
         J = np.einsum("tci,ts,scj->ij", G, si, G)
         chi2, dof = whitened_misfit(resid, sig)
-        if dof > 0 and np.isfinite(chi2) and chi2 > float(stats.chi2.ppf(MISFIT_PROBABILITY, dof)):
+        if (
+            dof > 0 and np.isfinite(chi2) and chi2 > float(2.0 * gammaincinv(dof / 2.0, MISFIT_PROBABILITY))
+        ):  # chi2.ppf's formula
             J = J * dof / chi2
         return 0.5 * (J + J.T)
 
