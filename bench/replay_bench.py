@@ -5,10 +5,10 @@ Accuracy (``simulated``): 90 s east at 40 m/s and 400 m over the Osborne mine an
 tactical IMU errors (seed 7), magnetometer = IGRF (2020-06-01) scaled by the map's anomaly + 1 nT noise, written as a
 MAVLink tlog (HIGHRES_IMU 25 Hz, ATTITUDE and GLOBAL_POSITION_INT 5 Hz); replayed with ``--init`` 68 m off (44 m N,
 52 m E), readings every 0.5 s, MLR windows of 30 readings every 10, for each fuser. The map keeps its own error
-layer (Osborne: median 35 nT, 200 m correlation), which the MLR likelihood carries since issue 13 (``ad9e45e``,
+layer (Osborne: median 26 nT, 200 m correlation), which the MLR likelihood carries since issue 13 (``ad9e45e``,
 "honest fix covariances from the map's error"): although the readings are drawn from the map itself (+ 1 nT), a
 30-reading window (600 m) then holds about three independent looks and its likelihood is wider than the UKF's search
-window, so no fix is issued (0 of 15: "reaches the edge of the search window" 10, "ambiguous" 5; 7 issued / 5
+window, so no fix is issued (0 of 15: "ambiguous" 8, "reaches the edge of the search window" 7; 7 issued / 5
 accepted before that commit; the README's first table, 13 / 9, came from an earlier version of this flight). The honest answer for a map
 with that error, not a replay defect; the throughput part below sets the layer to zero instead.
 
