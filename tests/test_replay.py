@@ -895,6 +895,9 @@ def test_streamed_csv_replays_bit_for_bit_as_read_whole(sim, tmp_path):
                 (f.t, f.available, f.reason) for f in streamed.fixes
             ]
             assert streamed.readings == whole.readings and streamed.gaps == whole.gaps
+            if duration is None:  # its chunks are read: a second replay of the same recording is refused
+                with pytest.raises(ConfigError, match="replays once"):
+                    replay(rec, fmap, init=init, fusion=fusion, matcher="mlr")
             assert len(whole.gaps) == (1 if gap and duration is None else 0)
             if fusion == "ukf":  # the matcher ran (no fix is accepted on this CSV: see the README's replay table)
                 assert len(whole.fixes) >= 5

@@ -377,11 +377,13 @@ class CsvChunks:
         self.path, self._fh, self.cols, self.wanted = p, fh, cols, wanted
         self.rows_done, self.t_last, self.chunk_rows = rows_before, t_last, chunk_rows
         self.estimated_rows = estimated_rows
+        self.started = False  # a replay has begun reading: the chunks can be read once only
 
     def __iter__(self) -> CsvChunks:
         return self
 
     def __next__(self) -> FloatArray:
+        self.started = True
         while self._fh is not None:
             lines = list(itertools.islice(self._fh, self.chunk_rows))
             if len(lines) < self.chunk_rows:
@@ -834,6 +836,8 @@ def replay(
     # chunk carried as the first of the next (the loop below sees the same samples, indices rebased)
     t_stop = float(imu.t[k0]) + duration_s + _TOL if duration_s is not None else math.inf
     rest = rec.rest if k_end == len(imu) else None
+    if rec.rest is not None and rec.rest.started:
+        raise ConfigError(f"{rec.path}: a streamed recording (open_log) replays once: open it again to replay it again")
     ahead = next(rest, None) if rest is not None else None
     row0 = 0  # samples of the log before t_all[0]
 
