@@ -40,10 +40,18 @@ from ...core.errors import ConfigError
 from ...core.protocols import FieldMap
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ._batch import adds_information, information_refusal
-from ._local import make_frame, map_components, sigma_window
+from ._local import make_frame, map_components, sigma_window, spacing_of
 from .map_error import resolve_map_error
 
 FloatArray = NDArray[np.float64]
+
+
+def _axis(half: float, target: float, n_min: int, n_max: int) -> FloatArray:
+    """Symmetric axis ``[-half, half]`` m with spacing at most ``target`` m where ``n_max`` nodes allow it (at
+    least ``n_min`` nodes; odd counts, so 0 is a node)."""
+    k = int(np.ceil(half / target))
+    k = int(np.clip(k, n_min // 2, n_max // 2))
+    return np.linspace(-half, half, 2 * k + 1)
 
 
 @dataclass
@@ -74,7 +82,9 @@ class PointMassFilter:
 
     ``grid_points`` nodes a side; ``gate_sigma`` grid half-width in prior sigmas (at least ``window_floor_m``);
     ``drift_sigma`` extra random walk of the INS position (m/sqrt(s)); ``use_prior``; ``restart``;
-    ``map_sigma`` / ``correlation_m`` override the map's error; ``edge_mass`` the border-mass cut-off."""
+    ``map_sigma`` / ``correlation_m`` override the map's error; ``edge_mass`` the border-mass cut-off;
+    ``max_spacing_fraction`` the largest grid spacing as a fraction of the map's node spacing (more nodes a side
+    than ``grid_points`` where the gate needs them, at most ``max_grid_points``)."""
 
     grid_points: int = 81
     gate_sigma: float = 4.0
@@ -85,6 +95,8 @@ class PointMassFilter:
     map_sigma: float | None = None
     correlation_m: float | None = None
     edge_mass: float = 0.05
+    max_spacing_fraction: float = 0.5
+    max_grid_points: int = 401
     name: str = "pmf"
 
     def __post_init__(self) -> None:
@@ -126,11 +138,9 @@ class PointMassFilter:
         an, ae, w = state.an, state.ae, state.w
         hn, he = sigma_window(cov, self.gate_sigma, self.window_floor_m)
         if np.isfinite(hn) and (hn > 1.2 * an[-1] or he > 1.2 * ae[-1]):  # the INS sigma outgrew the grid: widen
-            k = self.grid_points // 2
-            bn, be = (
-                np.linspace(-max(hn, an[-1]), max(hn, an[-1]), 2 * k + 1),
-                np.linspace(-max(he, ae[-1]), max(he, ae[-1]), 2 * k + 1),
-            )
+            # keep the spacing (more nodes, up to max_grid_points) so a refined grid stays refined
+            bn = _axis(max(hn, an[-1]), float(an[1] - an[0]), an.size, max(self.max_grid_points, an.size))
+            be = _axis(max(he, ae[-1]), float(ae[1] - ae[0]), ae.size, max(self.max_grid_points, ae.size))
             BN, BE = np.meshgrid(bn, be, indexing="ij")
             fi = (BN - an[0]) / (an[1] - an[0])
             fj = (BE - ae[0]) / (ae[1] - ae[0])
@@ -158,6 +168,8 @@ class PointMassFilter:
         if z.size != map_components(fmap) or not np.all(np.isfinite(z)):
             state.fix = Fix.no_fix(float(readings.t[-1]), "reading is NaN or has the wrong components", self.name)
             return state
+        if state.updates == 0:
+            self._refine(state, fmap)
         frame = make_frame(fmap, state.lat, state.lon)
         GN, GE = np.meshgrid(state.an, state.ae, indexing="ij")
         m = frame.sample(GN.ravel(), GE.ravel()).reshape(GN.shape + (-1,))
@@ -186,6 +198,30 @@ class PointMassFilter:
         state.updates += 1
         state.fix = None
         return state
+
+    def _refine(self, state: PMFState, fmap: FieldMap) -> None:
+        """Before the first reading: finer axes when the grid's spacing exceeds ``max_spacing_fraction`` of the
+        map's node spacing (the masses resampled; before any reading they are the prior, smooth on the grid).
+
+        Why (issue 16): with the tactical IMU on QLD West the gate of 4 prior sigmas spans 100-160 km and 81 nodes
+        a side put them 1.5-4 km apart on a 0.9 km map: the likelihood sampled that coarsely aliases (the node
+        nearest the truth misfits by several mGal, some node far away fits by chance), and a third of the issued
+        fixes sat 20-90 km off with sigmas of 1-15 km (fix NEES mean 2,058)."""
+        target = self.max_spacing_fraction * spacing_of(fmap, float("inf"))
+        an, ae = state.an, state.ae
+        if not np.isfinite(target) or target <= 0:
+            return
+        dn, de = float(an[1] - an[0]), float(ae[1] - ae[0])
+        if max(dn, de) <= target:
+            return
+        bn = _axis(float(an[-1]), target, an.size, self.max_grid_points)
+        be = _axis(float(ae[-1]), target, ae.size, self.max_grid_points)
+        BN, BE = np.meshgrid(bn, be, indexing="ij")
+        dens = state.w / (dn * de)
+        w = ndimage.map_coordinates(dens, [(BN - an[0]) / dn, (BE - ae[0]) / de], order=1, mode="nearest")
+        tot = float(w.sum())
+        state.an, state.ae = bn, be
+        state.w = w / tot if tot > 0 else np.full(w.shape, 1.0 / w.size)
 
     def to_fix(self, state: PMFState) -> Fix:
         """The posterior mean and covariance as a fix at the INS position plus the mean offset."""
