@@ -275,7 +275,9 @@ def build_map(sc: Scenario) -> Any:
                 if opts:
                     raise TypeError(f"unknown options {sorted(opts)}")
                 if which == "random_field":  # the readings are drawn from it: the map is exact (map_error.py)
-                    return grid.with_error_layer(0.0, grid.metadata["correlation_length_m"], "synthetic: exact")
+                    exact = grid.with_error_layer(0.0, grid.metadata["correlation_length_m"], "synthetic: exact")
+                    exact.metadata.update(level_sigma=0.0, level_sigma_source="synthetic: readings drawn from the map")
+                    return exact
                 from ..maps.track import road_network_from_grid
 
                 # a street grid sampled every step_m along streets at the given northings / eastings (m)
