@@ -29,7 +29,8 @@ position (the grid rides with the INS: Bergman's time update moves the masses by
 
 No fix: "off the map" (no map values under the grid), "flat map" when the fix adds no information over the prior
 beyond the grid's own (:func:`._batch.adds_information`), "at the edge" when more than ``edge_mass`` of the posterior sits on the grid's
-border (the truth may be outside the grid).
+border (the truth may be outside the grid), "diverged" when the readings' misfit at the mean offset (``chi2`` above)
+exceeds ``max_chi2``.
 """
 
 from __future__ import annotations
@@ -91,7 +92,8 @@ class PointMassFilter:
     ``drift_sigma`` extra random walk of the INS position (m/sqrt(s)); ``use_prior``; ``restart``;
     ``map_sigma`` / ``correlation_m`` override the map's error; ``edge_mass`` the border-mass cut-off;
     ``max_spacing_fraction`` the largest grid spacing as a fraction of the map's node spacing (more nodes a side
-    than ``grid_points`` where the gate needs them, at most ``max_grid_points``)."""
+    than ``grid_points`` where the gate needs them, at most ``max_grid_points``); ``max_chi2`` the misfit above
+    which the fix is "diverged" (as TERCOM's and ICCP's)."""
 
     grid_points: int = 81
     gate_sigma: float = 4.0
@@ -104,6 +106,7 @@ class PointMassFilter:
     edge_mass: float = 0.05
     max_spacing_fraction: float = 0.5
     max_grid_points: int = 401
+    max_chi2: float = 9.0
     name: str = "pmf"
 
     def __post_init__(self) -> None:
@@ -273,7 +276,16 @@ class PointMassFilter:
         Dn, De = float(state.an[1] - state.an[0]), float(state.ae[1] - state.ae[0])
         C = np.array([[np.sum(w * dn * dn), np.sum(w * dn * de)], [np.sum(w * dn * de), np.sum(w * de * de)]])
         C = C + np.diag([Dn * Dn, De * De]) / 12.0
-        C = C * max(1.0, self._misfit(state, mn, me_, 0.5 * min(Dn, De)))
+        chi2 = self._misfit(state, mn, me_, 0.5 * min(Dn, De))
+        if chi2 > self.max_chi2:
+            return Fix.no_fix(
+                t,
+                f"diverged: readings disagree with the map at the mean offset (chi2 per reading {chi2:.3g} above "
+                f"{self.max_chi2:g})",
+                self.name,
+                chi2,
+            )
+        C = C * max(1.0, chi2)
         gate = (0.5 * float(state.an[-1] - state.an[0]), 0.5 * float(state.ae[-1] - state.ae[0]))
         if not adds_information(C, state.cov_ne, gate):  # C holds the grid's own (diffuse) information
             return information_refusal(t, C, state.cov_ne, self.name, float(state.updates), gate)
