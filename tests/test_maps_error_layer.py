@@ -256,3 +256,35 @@ def test_crossover_level_of_tie_lines_offset_from_the_flight_lines(truth):
     assert (resolve_level(stated).sigma, resolve_level(stated).source) == (7.0, "map")
     with pytest.raises(InputError, match="level_sigma"):
         grid_survey(s, 50.0, error_folds=0, level_sigma=-1.0)
+
+
+def test_scenario_states_the_level_prior():
+    """[map] options.level_sigma reaches the matchers' level prior; a map stated exact (error_sigma = 0: the readings
+    are drawn from it) has no level offset; the shared built-in map is not modified; a bad value is a ConfigError."""
+    from magnav_ins.aiding.matchers.map_error import resolve_level
+    from magnav_ins.studies import model as Mdl
+    from magnav_ins.studies.scenario import scenario_from_dict
+
+    def doc(options: dict) -> dict:
+        return {
+            "name": "lv",
+            "trajectory": {
+                "kind": "great_circle",
+                "start": [-35.0, 145.0],
+                "end": [-34.5, 145.5],
+                "altitude_m": 10000.0,
+                "speed_mps": 200.0,
+            },  # fmt: skip
+            "imu": {"grade": "navigation"},
+            "map": {"path": "builtin:eigen6c4-australia-se", "kind": "gravity_disturbance_mgal", "options": options},
+        }
+
+    default = resolve_level(Mdl.build_map(scenario_from_dict(doc({}))))
+    assert default.source == "default" and default.sigma > 0.5  # 10 % of the map's std (tens of mGal)
+    stated = resolve_level(Mdl.build_map(scenario_from_dict(doc({"level_sigma": 2.5}))))
+    assert (stated.sigma, stated.source) == (2.5, "map")
+    exact = resolve_level(Mdl.build_map(scenario_from_dict(doc({"error_sigma": 0.0}))))
+    assert exact.sigma == 0.0 and "stated exact" in exact.detail
+    assert resolve_level(load_map("builtin:eigen6c4-australia-se")).source == "default"  # the cached map untouched
+    with pytest.raises(ConfigError, match="level_sigma must be a number >= 0"):
+        Mdl.build_map(scenario_from_dict(doc({"level_sigma": -1.0})))
