@@ -687,6 +687,8 @@ def test_batched_replay_equals_sample_by_sample(sim):
     class OneByOne:
         """The pipeline with its batch input replaced by sample-by-sample push_imu (the bridge's feed)."""
 
+        can_push_outputs = False  # not the free-inertial path in one call either
+
         def __init__(self, pipe) -> None:  # noqa: ANN001
             self.p = pipe
 
@@ -716,3 +718,133 @@ def test_batched_replay_equals_sample_by_sample(sim):
         assert [f.available for f in a.fixes] == [f.available for f in b.fixes]
         if fusion == "ukf":
             assert sum(i.accepted for i in a.innovations) >= 1
+
+
+@pytest.mark.parametrize(("output_dt", "chunk"), [(0.2, None), (2.5, 37)])
+def test_free_inertial_fast_path_equals_sample_by_sample_across_a_gap(sim, tmp_path, monkeypatch, output_dt, chunk):
+    """The free-inertial replay mechanises the samples between two gaps in compiled chunks with the output samples
+    marked (:meth:`.online.OnlinePipeline.push_imu_outputs`); the sample-by-sample feed of the bridge (``push_imu``
+    and ``estimate`` at each output) gives the same trajectory, sigmas, protection levels and summary, across a
+    2 s gap that restarts the INS (``--max-gap 0.5``). Tolerance 1e-12 relative (the compiled covariance product
+    may sum in another order than numpy's BLAS; measured: bit for bit). ``output_dt`` 2.5 s puts covariance steps
+    (every 1 s) between outputs; ``chunk`` 37 splits the runs between outputs and gaps into many calls."""
+    from magnav_ins.mavlink import replay as replay_mod
+    from magnav_ins.mavlink.bridge import ScalarAnomalyModel
+    from magnav_ins.mavlink.replay import make_online_pipeline, replay
+
+    truth, imu = sim["truth"], sim["imu"]
+    k_gap = int(30.0 * RATE_HZ) + 1
+    t = truth.t + T0 + np.where(np.arange(len(truth)) >= k_gap, 2.0, 0.0)
+    t = t + np.where(np.arange(len(t)) % 7 == 3, 0.004, 0.0)  # uneven sample intervals
+    log = tmp_path / "gap2s.csv"
+    np.savetxt(log, np.column_stack([t, imu.gyro_b, imu.accel_b, sim["mag_b"]]), delimiter=",", fmt="%.17g",
+               comments="", header="t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,mag_x,mag_y,mag_z")  # fmt: skip
+    rec = read_log(log)
+    init = (math.radians(-21.7996), math.radians(140.7205), 400.0, math.radians(90.0))
+    if chunk is not None:
+        monkeypatch.setattr(replay_mod, "FAST_CHUNK", chunk)
+    calls = []
+
+    class Counted:
+        def __init__(self, pipe, one_by_one: bool) -> None:  # noqa: ANN001
+            self.p, self.one = pipe, one_by_one
+
+        def __getattr__(self, name: str):  # noqa: ANN204
+            return getattr(self.p, name)
+
+        @property
+        def can_push_outputs(self) -> bool:
+            return not self.one and self.p.can_push_outputs
+
+        def push_imu_outputs(self, *args):  # noqa: ANN002, ANN202
+            calls.append(len(args[0]))
+            return self.p.push_imu_outputs(*args)
+
+        def push_imu_batch(self, t, w, f, *, altitude_hold=None, attitudes=False):  # noqa: ANN001, ANN202, ARG002
+            assert self.one, "the fast path must take every sample"
+            for k in range(len(t)):
+                self.p.push_imu(float(t[k]), w[k], f[k])
+
+    runs = []
+    for one in (False, True):
+
+        def factory(nav, sigma, one=one):  # noqa: ANN001, ANN202
+            return Counted(make_online_pipeline(nav, sigma, None, fusion="free_inertial", matcher="none"), one)
+
+        runs.append(replay(rec, None, init=init, field_model=ScalarAnomalyModel(DATE), output_dt=output_dt,
+                           max_gap_s=0.5, pipeline_factory=factory))  # fmt: skip
+    fast, slow = runs
+    assert sum(calls) == len(t) - 2  # every sample but the first (the start) and the one after the gap (restart)
+    assert len(calls) >= (2 if chunk is None else len(t) // chunk)
+    assert len(fast.gaps) == 1 and fast.gaps[0]["row"] == k_gap + 1
+    assert len(fast.t) == len(slow.t) > 90.0 / output_dt
+    np.testing.assert_array_equal(fast.t, slow.t)
+    tf, ts = fast.trajectory, slow.trajectory
+    for x, y in ((tf.lat, ts.lat), (tf.lon, ts.lon), (tf.h, ts.h), (tf.v_n, ts.v_n), (tf.q_nb, ts.q_nb),
+                 (fast.sigma_ne, slow.sigma_ne), (fast.hpl_m, slow.hpl_m)):  # fmt: skip
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=0.0)
+    assert fast.summary() == slow.summary()
+    # the INS ran free (its sigma grows) and restarted at the sample after the gap with the grown sigma
+    assert fast.sigma_ne[-1, 0] > 1.5 * fast.sigma_ne[0, 0]
+    i = int(np.argmax(fast.t >= t[k_gap] - 1e-9))
+    assert fast.sigma_ne[i, 0] >= fast.sigma_ne[i - 1, 0] and np.all(np.diff(fast.t) > 0)
+
+
+def test_csv_parsed_without_pandas_same_numbers(sim, tmp_path):
+    """A plain numeric CSV is parsed straight into one float64 array (no pandas table and copy: 160 MB less at
+    1 M rows); the numbers are pandas' own, with comment lines, a blank line and an extra text column. A pressure
+    column or a bad value goes through pandas (which names the row and column)."""
+    import pandas as pd
+
+    from magnav_ins.mavlink.replay import _read_csv_numbers
+
+    imu, n = sim["imu"], 400
+    cols = np.column_stack([sim["truth"].t[:n] + T0, imu.gyro_b[:n], imu.accel_b[:n], sim["mag_b"][:n]])
+    body = "\n".join(
+        ",".join([f"{cols[k, 0]:.5f}", *(f"{x:.9e}" for x in cols[k, 1:7]), *(f"{x:.2f}" for x in cols[k, 7:])])
+        + ",note"
+        for k in range(n)
+    )
+    p = tmp_path / "plain.csv"
+    p.write_text("# recorded by a test\n t ,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,mag_x,mag_y,mag_z,remark\n"
+                 + body.replace("\n", "\n# a comment line\n", 1) + "\n\n")  # fmt: skip
+    fast = _read_csv_numbers(p)
+    assert fast is not None and fast[1]
+    ref = pd.read_csv(p, comment="#")
+    ref.columns = [c.strip() for c in ref.columns]
+    want = ["t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z", "mag_x", "mag_y", "mag_z"]
+    np.testing.assert_array_equal(fast[0], ref[want].to_numpy(float))
+    rec = read_log(p)
+    np.testing.assert_array_equal(rec.imu.gyro_b, fast[0][:, 1:4])
+    np.testing.assert_array_equal(rec.mag_b_nt, fast[0][:, 7:10])
+    bad = tmp_path / "bad.csv"
+    bad.write_text(p.read_text().replace(f"{cols[5, 0]:.5f},", f"{cols[5, 0]:.5f},x", 1))
+    assert _read_csv_numbers(bad) is None
+    with pytest.raises(InputError, match="column 'gyro_x': not a number"):
+        read_log(bad)
+    baro = tmp_path / "baro.csv"
+    baro.write_text("t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z,pressure_pa\n" + "\n".join(
+        f"{T0 + 0.04 * k:.2f},0,0,0,0,0,-9.8,{'' if k % 2 else 96000.0}" for k in range(10)))  # fmt: skip
+    assert _read_csv_numbers(baro) is None
+    assert len(read_log(baro).baro_pa) == 5
+
+
+def test_free_inertial_csv_replay_imports_no_heavy_libraries(sim, tmp_path):
+    """The free-inertial replay of a CSV over one of this project's NetCDF maps imports neither xarray, pandas,
+    pymavlink, scipy.stats nor scipy.signal (~130 MB of a 1 M-row replay's memory: the < 300 MB target)."""
+    import subprocess
+    import sys
+
+    log = tmp_path / "short.csv"
+    _gapped_csv(sim, log)
+    code = (
+        "import sys, json\nfrom magnav_ins.cli import main\n"
+        f"rc = main(['replay', {str(log)!r}, '--map', {MAP!r}, '--init={INIT}', '--fusion', 'free_inertial', "
+        f"'--date', {DATE!r}, '--quiet', '--out', {str(tmp_path / 'o.csv')!r}])\n"
+        "print(json.dumps([rc, sorted(m for m in sys.modules if m.split('.')[0] in "
+        "('xarray', 'pandas', 'pymavlink') or m in ('scipy.stats', 'scipy.signal'))]))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    rc, heavy = json.loads(out.stdout.splitlines()[-1])
+    assert rc == 0 and heavy == [], heavy
+    assert len(_read_traj(tmp_path / "o.csv")["t"]) > 80

@@ -10,7 +10,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from ..aiding.calibration import METHODS, MagCalibration, calibrate
 from ..core.atomic import check_output_file
@@ -43,6 +42,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def read_readings(path: Path) -> np.ndarray:
     """Read ``t,mx,my,mz`` (nT) from CSV; returns (N, 3) nT. Missing columns / unreadable files -> InputError."""
+    import pandas as pd  # here: the command-line parser stays light (pandas costs 40 MB to import)
+
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     try:

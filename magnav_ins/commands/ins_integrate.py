@@ -24,13 +24,10 @@ from pathlib import Path
 from typing import TextIO
 
 import numpy as np
-import pandas as pd
 
 from ..core.atomic import atomic_path, check_output_file
 from ..core.errors import InputError, where
-from ..core.frames import euler_from_q_nb, q_nb_from_euler
-from ..core.types import ImuBatch, NavState, NavTrajectory
-from ..ins.strapdown import SAMPLE_TYPES, StrapdownStepper, check_sample_type, interval_means
+from ..core.types import SAMPLE_TYPES, ImuBatch, NavState, NavTrajectory
 
 IMU_COLUMNS = ("t", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
 INIT_KEYS = ("t", "lat_deg", "lon_deg", "h_m", "v_n", "roll_deg", "pitch_deg", "yaw_deg")
@@ -85,6 +82,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def read_init(path: Path) -> NavState:
     """Read INIT.json into a :class:`NavState` (SI). Unknown, missing or non-numeric keys raise :class:`InputError`."""
+    from ..core.frames import q_nb_from_euler
+
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -123,6 +122,8 @@ def read_init(path: Path) -> NavState:
 
 
 def _check_header(path: Path) -> None:
+    import pandas as pd
+
     try:
         header = pd.read_csv(path, nrows=0)
     except FileNotFoundError:
@@ -142,6 +143,8 @@ def _check_header(path: Path) -> None:
 
 def _chunks(path: Path, chunk_rows: int):
     """Yield (first data row number, DataFrame of float columns) with every value numeric and finite."""
+    import pandas as pd
+
     row0 = 1
     try:
         reader = pd.read_csv(path, chunksize=chunk_rows, skipinitialspace=True)
@@ -194,6 +197,8 @@ def _check_plausible(path: Path, row0: int, gyro: np.ndarray, accel: np.ndarray,
 
 
 def _write(fh: TextIO, traj: NavTrajectory) -> None:
+    from ..core.frames import euler_from_q_nb
+
     roll, pitch, yaw = euler_from_q_nb(traj.q_nb)
     table = np.column_stack(
         [traj.t, np.rad2deg(traj.lat), np.rad2deg(traj.lon), traj.h, traj.v_n, np.rad2deg([roll, pitch, yaw]).T]
@@ -214,6 +219,8 @@ def integrate_file(
 ) -> int:
     """Mechanise ``imu_path`` from ``init_path`` into ``out_path`` (see the module docstring). Returns the number of
     trajectory rows written. Raises :class:`InputError` naming the file, row and column on bad input."""
+    from ..ins.strapdown import StrapdownStepper, check_sample_type, interval_means
+
     imu_path, init_path, out_path = Path(imu_path), Path(init_path), Path(out_path)
     check_output_file(out_path)
     if max_gap is not None and not (math.isfinite(max_gap) and max_gap > 0):

@@ -146,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..aiding.calibration import MagCalibration
     from ..maps.builtin import load_map
-    from ..mavlink.bridge import ScalarAnomalyModel
+    from ..mavlink.field_model import ScalarAnomalyModel
     from ..mavlink.replay import initial_state, read_log, replay, write_trajectory
 
     init = parse_init(args.init)

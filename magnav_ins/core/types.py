@@ -39,6 +39,14 @@ def _as_float_array(name: str, a: object, shape_tail: tuple[int, ...] = ()) -> F
     return arr
 
 
+#: what an IMU sample holds about its interval ``(t[k-1], t[k]]`` (rates in rad/s and m/s^2, increments in rad and
+#: m/s): ``mean`` the mean rate over the interval (the mechanisation's own input; a rate-integrating IMU's output);
+#: ``instantaneous`` the rate at ``t[k]`` (a filtered MEMS sample, ArduPilot's and PX4's HIGHRES_IMU, pyins
+#: ``sensor_type="rate"``); ``increment`` the integral over the interval (pyins ``sensor_type="increment"``).
+#: (Here, re-exported by :mod:`magnav_ins.ins.strapdown`, so that a command's parser offers them without numba.)
+SAMPLE_TYPES = ("mean", "instantaneous", "increment")
+
+
 @dataclass(frozen=True)
 class ImuBatch:
     """Rate-type IMU samples. ``t`` (N,) s; ``gyro_b`` (N,3) rad/s = omega_ib_b; ``accel_b`` (N,3) m/s^2 = f_ib_b

@@ -22,7 +22,6 @@ import math
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.signal import lfilter
 
 from ..core import units as u
 from ..core.errors import ConfigError
@@ -339,6 +338,8 @@ def _gauss_markov(t: FloatArray, b0: FloatArray, sigma: FloatArray, tau: float, 
     w = rng.standard_normal(lead + (n - 1, 3)) * (sigma * np.sqrt(1.0 - phi**2)[:, None])
     if np.allclose(dt, dt[0], rtol=1e-9, atol=0.0):
         # b[k] - phi b[k-1] = w[k]: one IIR filter along time, initial condition from b0
+        from scipy.signal import lfilter  # here: scipy.signal costs 30 MB to import, the replay needs no simulation
+
         zi = (phi[0] * b0)[..., None, :]  # lfilter state: y[0] = x[0] + phi*y[-1]
         y, _ = lfilter([1.0], [1.0, -phi[0]], w, axis=-2, zi=zi)
         out[..., 1:, :] = y

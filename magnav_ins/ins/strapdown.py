@@ -53,7 +53,7 @@ from numba import njit, prange
 
 from ..core.errors import InputError
 from ..core.frames import WGS84_A, WGS84_E2, WGS84_F, WGS84_GAMMA_E, WGS84_K, WGS84_M, WGS84_OMEGA_E
-from ..core.types import FloatArray, ImuBatch, ImuIncrements, NavState, NavTrajectory
+from ..core.types import SAMPLE_TYPES, FloatArray, ImuBatch, ImuIncrements, NavState, NavTrajectory
 
 __all__ = [
     "SAMPLE_TYPES",
@@ -800,13 +800,6 @@ def integrate_batch(
         out[:, :, _V : _V + 3].copy(),
         out[:, :, _Q:].copy(),
     )
-
-
-#: what an IMU sample holds about its interval ``(t[k-1], t[k]]`` (rates in rad/s and m/s^2, increments in rad and
-#: m/s): ``mean`` the mean rate over the interval (the mechanisation's own input; a rate-integrating IMU's output);
-#: ``instantaneous`` the rate at ``t[k]`` (a filtered MEMS sample, ArduPilot's and PX4's HIGHRES_IMU, pyins
-#: ``sensor_type="rate"``); ``increment`` the integral over the interval (pyins ``sensor_type="increment"``).
-SAMPLE_TYPES = ("mean", "instantaneous", "increment")
 
 
 def check_sample_type(sample_type: str) -> str:

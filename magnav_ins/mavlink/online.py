@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.errors import ConfigError
+from ..core.errors import ConfigError, InputError
 from ..core.frames import latlon_to_meters, meters_to_latlon
 from ..core.protocols import MatchWindow
 from ..core.types import Fix, Innovation, NavEstimate, NavState
@@ -183,6 +183,37 @@ class OnlinePipeline(Pipeline):
                 self._attitudes.append((float(t[k]), q[k].copy()))
         return q if attitudes else None
 
+    @property
+    def can_push_outputs(self) -> bool:
+        """True when :meth:`push_imu_outputs` applies: a free-inertial fuser that can (no matcher, no queued
+        reading, no attitude tracking)."""
+        return (
+            self.matcher is None
+            and not self._pending
+            and self._job is None
+            and not self._track_attitude
+            and getattr(self.fuser, "can_propagate_outputs", False)
+        )
+
+    def push_imu_outputs(
+        self, t: np.ndarray, gyro_b: np.ndarray, accel_b: np.ndarray, out_idx: np.ndarray
+    ) -> np.ndarray:
+        """Several IMU samples as :meth:`push_imu_batch` (``t`` (m,) s, (m,3) rad/s and m/s^2 of this pipeline's
+        sample type, body FRD), with the estimate after each sample ``out_idx`` (increasing indices) returned as
+        rows (:data:`magnav_ins.aiding.fusion.free_run.ROW_COLUMNS`): the same numbers as :meth:`push_imu_batch` up
+        to each of them and :meth:`estimate` there, in one compiled call (the free-inertial replay). Only when
+        :attr:`can_push_outputs`."""
+        if not self.can_push_outputs:
+            raise ConfigError("push_imu_outputs: only for a free-inertial pipeline without a matcher")
+        t = np.asarray(t, dtype=float).reshape(-1)
+        if len(t) and not t[0] > self._t_imu + 1e-9:
+            raise InputError(f"push_imu_outputs: time must increase: t={float(t[0])!r} s after t={self._t_imu!r} s")
+        w, f = self._means.means_batch(t, gyro_b, accel_b)
+        rows = self.fuser.propagate_outputs(t, w - self._gyro_bias, f - self._accel_bias, out_idx)
+        if len(t):
+            self._t_imu = float(t[-1])
+        return rows
+
     # -- background matching -------------------------------------------------------------------------------
     def _match(self, win: MatchWindow, est: NavEstimate) -> None:
         if not self.background_matching or self._batch:
@@ -270,7 +301,6 @@ def make_online_pipeline(
     :class:`OnlinePipeline`.
     """
     from ..aiding.fusion import ImuNoise, make_fuser
-    from ..aiding.matchers.registry import build_matcher
     from ..ins.error_model import initial_covariance
     from ..ins.imu_models import get_grade
 
@@ -288,6 +318,8 @@ def make_online_pipeline(
     fuser = make_fuser(fusion, init, ImuNoise.from_grade(g), **options)
     m = None
     if fusion != "free_inertial" and matcher not in (None, "none"):
+        from ..aiding.matchers.registry import build_matcher  # here: the free INS needs none (scipy.stats, 30 MB)
+
         m = build_matcher({"kind": matcher} if isinstance(matcher, str) else dict(matcher))
     kind = getattr(fmap, "kind", None)
     return OnlinePipeline(

@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+import warnings
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -78,6 +79,8 @@ LEVELLING_S = 1.0
 #: initial 1-sigmas with --init: roll/pitch levelled from the specific force (rad), a heading given by hand (rad)
 INIT_TILT_SIGMA_RAD = 0.01
 INIT_YAW_SIGMA_RAD = 0.05
+#: IMU samples per call of the free-inertial replay (bounds the temporary arrays; the progress bar's step)
+FAST_CHUNK = 16384
 
 
 # ------------------------------------------------------------------------------------------------ recordings
@@ -305,7 +308,44 @@ def _read_tlog(p: Path, geoid_height_m: float) -> LogRecording:
     )
 
 
+def _read_csv_numbers(p: Path) -> tuple[FloatArray, bool] | None:
+    """The plain numeric CSV (no pressure column, every wanted field a number) as one float64 array of the wanted
+    columns (:data:`CSV_IMU_COLUMNS` then :data:`CSV_MAG_COLUMNS` when all present) and whether the magnetometer is
+    there, parsed straight into the array (``np.loadtxt``: no table object, no second copy, no pandas import: a
+    1 M-row log takes 80 MB, ~2 s); None for anything else (the pandas path then reads it or names the problem)."""
+    skip = 0
+    header = ""
+    try:
+        with p.open(encoding="utf-8") as fh:
+            for line in fh:
+                skip += 1
+                header = line.split("#", 1)[0].strip()
+                if header:
+                    break
+    except (OSError, UnicodeDecodeError):
+        return None
+    cols = [c.strip() for c in header.split(",")]
+    if '"' in header or len(set(cols)) != len(cols) or CSV_PRESSURE_COLUMN in cols:
+        return None
+    if any(c not in cols for c in CSV_IMU_COLUMNS):
+        return None
+    has_mag = all(c in cols for c in CSV_MAG_COLUMNS)
+    wanted = list(CSV_IMU_COLUMNS) + (list(CSV_MAG_COLUMNS) if has_mag else [])
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "input contained no data": said later as "fewer than 2 data rows"
+            a = np.loadtxt(p, dtype=np.float64, delimiter=",", comments="#", skiprows=skip,
+                           usecols=[cols.index(c) for c in wanted], ndmin=2, encoding="utf-8")  # fmt: skip
+    except (ValueError, UnicodeDecodeError):
+        return None
+    return a, has_mag
+
+
 def _read_csv(p: Path) -> LogRecording:
+    fast = _read_csv_numbers(p)
+    if fast is not None:
+        a, has_mag = fast
+        return _csv_recording(p, a, has_mag, None)
     import pandas as pd
 
     try:
@@ -330,6 +370,13 @@ def _read_csv(p: Path) -> LogRecording:
                 k = int(np.argmax(bad.to_numpy()))
                 raise InputError(f"{p}: row {k + 1} column {c!r}: not a number: {df[c].iloc[k]!r}") from None
         raise
+    return _csv_recording(p, a, has_mag, df)
+
+
+def _csv_recording(p: Path, a: FloatArray, has_mag: bool, df: Any) -> LogRecording:
+    """The recording from the wanted columns ``a`` of a CSV (:func:`_read_csv`); ``df`` the pandas table when it
+    was read through pandas (its pressure column, if any, is read from it)."""
+    wanted = list(CSV_IMU_COLUMNS) + (list(CSV_MAG_COLUMNS) if has_mag else [])
     if len(a) < 2:
         raise InputError(f"{p}: fewer than 2 data rows")
     for j, c in enumerate(wanted):
@@ -343,7 +390,9 @@ def _read_csv(p: Path) -> LogRecording:
     mag = a[:, 7:10] if has_mag else np.zeros((0, 3))
     sources = {"imu": "CSV", **({"mag": "CSV"} if has_mag else {})}
     baro_t, baro_pa = np.zeros(0), np.zeros(0)
-    if CSV_PRESSURE_COLUMN in cols:
+    if df is not None and CSV_PRESSURE_COLUMN in df.columns:
+        import pandas as pd
+
         pa = pd.to_numeric(df[CSV_PRESSURE_COLUMN], errors="coerce").to_numpy(dtype=float)
         bad = np.isnan(pa) & df[CSV_PRESSURE_COLUMN].notna().to_numpy()
         if bad.any():
@@ -531,6 +580,21 @@ class _Outputs:
         row[12] = math.sqrt(max(P[1, 1], 0.0))
         row[13] = float(est.hpl_m)
         self.n += 1
+
+    def add_rows(self, rows: FloatArray, hpl: Callable[[FloatArray], float]) -> None:
+        """Estimates as rows of :data:`magnav_ins.aiding.fusion.free_run.ROW_COLUMNS`; ``hpl(P_ne)`` (m) of each."""
+        m = len(rows)
+        if self.n + m > len(self.a):
+            self.a = np.concatenate([self.a, np.empty((max(m, len(self.a)), self.a.shape[1]))])
+        out = self.a[self.n : self.n + m]
+        out[:, 0:11] = rows[:, 0:11]
+        out[:, 11] = np.sqrt(np.maximum(rows[:, 11], 0.0))
+        out[:, 12] = np.sqrt(np.maximum(rows[:, 13], 0.0))
+        P = np.empty((2, 2))
+        for i, r in enumerate(rows):
+            P[0, 0], P[0, 1], P[1, 0], P[1, 1] = r[11], r[12], r[12], r[13]
+            out[i, 13] = hpl(P)
+        self.n += m
 
     @property
     def last_t(self) -> float:
@@ -727,6 +791,29 @@ def replay(
     ig = 0
     k = k0 + 1
     while k < n:
+        if bh is None and not takes_readings and getattr(pipe, "can_push_outputs", False):
+            # free inertial: the samples up to the next gap in chunks, the output samples marked, in one compiled
+            # call each (OnlinePipeline.push_imu_outputs: the same numbers as the general path below)
+            b = min(int(gap_at[ig]) if ig < len(gap_at) else n, k + FAST_CHUNK)
+            if b > k:
+                idx: list[int] = []
+                kk = k
+                while True:
+                    e = max(kk, int(np.searchsorted(t_all, t_next - _TOL, side="left")))
+                    if e >= b:
+                        break
+                    idx.append(e - k)
+                    t_next += output_dt * max(1.0, math.floor((float(t_all[e]) - t_next) / output_dt + _TOL) + 1.0)
+                    kk = e + 1
+                rows = pipe.push_imu_outputs(t_all[k:b], gyro[k:b], accel[k:b], np.asarray(idx, dtype=np.int64))
+                outs.add_rows(rows, pipe.fuser.monitor.hpl)
+                j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] - _TOL, side="left")))
+                if idx and idx[-1] == b - 1 - k:  # an output sample: the magnetometer samples at its time are past
+                    j = max(j, int(np.searchsorted(mag_t, t_all[b - 1] + _TOL, side="right")))
+                if progress is not None:
+                    progress(b - k)
+                k = b
+                continue
         # the next sample that needs handling: a gap, an output, a reading; the samples before it, and the sample
         # itself unless it ends a gap or a reading falls inside its interval, go to the pipeline in one call
         e_gap = int(gap_at[ig]) if ig < len(gap_at) else n
