@@ -974,6 +974,7 @@ class Bridge:
                 log.info("map fix at t=%.1f s: %.7f, %.7f, sigma %.0f / %.0f m", f.t, math.degrees(f.lat),
                          math.degrees(f.lon), s[0], s[-1])  # fmt: skip
             if not f.available:
+                log.info("map: no fix at t=%.1f s: %s", f.t, f.reason)
                 key = f.reason.split(":")[0] or "unspecified"
                 self.health.no_fix_reasons[key] = self.health.no_fix_reasons.get(key, 0) + 1
         for x in inns[i0:]:
