@@ -16,9 +16,9 @@ its gyros miss the Earth's rate and its world is flat, 0.2-0.3 mg of apparent ac
 bench tells the bridge ``--grade tactical`` (1 deg/h, 1 mg), the grade that covers it; a MEMS autopilot on a real
 airframe is the bridge's default ``autopilot`` grade. ``--grade autopilot`` flies the same square with that model.
 
-Run by hand (about 15 minutes for the default square at 15 m/s; the SITL runs in real time):
-``python bench/sitl_flight.py --json [--output gps_input|odometry] [--home=LAT,LON] [--side-m 2000]
-[--altitude-m 80] [--speed-mps 15] [--grade tactical]``
+Run by hand (about 17 minutes for the default square: asked for 15 m/s, the SITL copter flies 10 m/s; the SITL runs
+in real time): ``python bench/sitl_flight.py --json [--output gps_input|odometry] [--home=LAT,LON] [--side-m 2000]
+[--altitude-m 80] [--speed-mps 15] [--warmup-m 150] [--grade tactical]``
 """
 
 from __future__ import annotations
