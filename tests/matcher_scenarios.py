@@ -63,7 +63,9 @@ def exact(fmap: GridMap) -> GridMap:
     """The map with a zero error layer: a synthetic map whose readings are drawn from it is the truth, so the
     matchers must not add the default map error of a map that does not know its error (``map_error.py``)."""
     ell = float(fmap.metadata.get("correlation_length_m", 1.0)) * np.sqrt(2.0)  # the field's 1/e length
-    return fmap.with_error_layer(0.0, ell, "synthetic: exact")
+    out = fmap.with_error_layer(0.0, ell, "synthetic: exact")
+    out.metadata.update(level_sigma=0.0, level_sigma_source="synthetic: readings drawn from the map")
+    return out
 
 
 def flat_like(fmap: GridMap) -> GridMap:
@@ -231,17 +233,24 @@ def error_field(
 
 
 def section_trial(
-    m: Any, ef: ErrorField, fmap: GridMap, rng: np.random.Generator, nz: int = 30, step_m: float = 10.0
+    m: Any,
+    ef: ErrorField,
+    fmap: GridMap,
+    rng: np.random.Generator,
+    nz: int = 30,
+    step_m: float = 10.0,
+    level_sigma: float = 0.0,
 ) -> tuple[Fix, np.ndarray]:
     """A straight section of ``nz`` readings ``step_m`` apart along a random heading, read from the TRUTH (noise
-    2 nT), matched against ``fmap``; INS offset ~ N(0, 15^2 I) m."""
+    2 nT) plus a constant level offset ~ N(0, ``level_sigma``^2) drawn per section, matched against ``fmap``; INS
+    offset ~ N(0, 15^2 I) m."""
     sig, ps = 2.0, 15.0
     head = rng.uniform(0, 2 * np.pi)
     start = rng.uniform(400.0, 1100.0, 2)
     s = step_m * np.arange(nz)
     true_ne = start + np.column_stack([s * np.cos(head), s * np.sin(head)])
     lat, lon = latlon(ef.truth, true_ne[:, 0], true_ne[:, 1])
-    z = ef.truth.value(lat, lon) + rng.normal(0.0, sig, nz)
+    z = ef.truth.value(lat, lon) + rng.normal(0.0, sig, nz) + (rng.normal(0.0, level_sigma) if level_sigma else 0.0)
     P = np.eye(2) * ps**2
     off = rng.multivariate_normal([0, 0], P)
     w = make_window(fmap, np.arange(nz, dtype=float), true_ne, z, sig, KIND_TF, off, P, np.zeros(2))

@@ -287,6 +287,12 @@ CASES = [
     Case("map-grid-junk", ("map", "grid", "junk.bin", "--spacing", "100", "--out", "g.nc"), ("junk.bin",), ("g.nc",)),
     Case("map-grid-empty", ("map", "grid", "empty", "--spacing", "100", "--out", "g.nc"), ("empty",), ("g.nc",)),
     Case(
+        "map-grid-level-sigma",
+        ("map", "grid", "points.csv", "--spacing", "100", "--out", "g.nc", "--level-sigma", "-3"),
+        ("--level-sigma", ">= 0"),
+        ("g.nc",),
+    ),  # fmt: skip
+    Case(
         "map-grid-out-folder",
         ("map", "grid", "points.csv", "--spacing", "100", "--out", "adir"),
         ("--out adir", "is a folder"),

@@ -74,8 +74,12 @@ def test_info_table_and_json(main, bilinear_map, capsys):
     assert s["kind"] == "gravity_disturbance_mgal" and s["shape"] == [9, 11] and s["altitude_m"] == 500.0
     np.testing.assert_allclose(s["lat_deg"], [-36.0, -34.0])
     np.testing.assert_allclose(s["spacing_m"][0], 0.25 * DEG * 6_356_000, rtol=3e-3)
+    vals = np.asarray(s["value_range"])
+    assert s["level_sigma"]["source"] == "default" and 0.0 < s["level_sigma"]["sigma"] < 0.5 * np.ptp(vals)
     assert main(["map", "info", "builtin:osborne-magnetic"]) == 0
-    assert "total_field_anomaly_nt [nT]" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "total_field_anomaly_nt [nT]" in out
+    assert "level offset    1-sigma 30.2 nT (the matchers' stated default" in out
 
 
 def test_grid_a_survey_then_use_it(main, tmp_path, capsys):

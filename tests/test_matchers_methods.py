@@ -380,6 +380,7 @@ def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
     ramp, which a random walk of the same end sigma does not cover; the bound checks the gain, not consistency."""
     rng = np.random.default_rng(31)
     fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
+    fmap.metadata["level_sigma"] = 0.0  # readings drawn from this map: no level offset
     T, dt, sig, v = 30, 10.0, 0.5, np.array([12.0, 9.0])
     tt = dt * np.arange(T)
     P = np.array([np.eye(2) * (30.0 + 0.5 * t) ** 2 for t in tt])
@@ -463,6 +464,7 @@ def test_matchers_on_a_geodetic_grid_map():
     fmap = GridMap(
         lat0 + n_ax / r_n, lon0 + e_ax / (r_e * np.cos(lat0)), vals, kind=KIND_G, frame="geodetic", altitude_m=0.0
     ).with_error_layer(0.0, 300.0)  # the readings are drawn from this map: it is exact
+    fmap.metadata["level_sigma"] = 0.0  # ... and on its level
     # PMHT: 30 scans 71 m apart, inside the 3 km map
     v = np.array([5.0, 5.0])
     truth = np.array([-800.0, -700.0]) + v * 10.0 * np.arange(30)[:, None]  # about the grid centre

@@ -287,3 +287,108 @@ def test_cover_rivals_of_the_likelihood_widens_r_by_the_hidden_peak():
     assert abs(dR[1, 1]) < 1e-9 and abs(dR[0, 1]) < 0.02
     with pytest.raises(ConfigError, match="rivals_of"):
         BayesGridMatcher(rivals_of="prior")
+
+
+# ------------------------------------------------------------------ residual monitoring with a wider search
+def test_research_finds_the_vehicle_outside_a_wrong_and_too_sure_prior_by_hand():
+    """Linear field x = 20 nT/m north, y = 20 nT/m east, reading sigma 10 nT, noise-free reading at the truth; the
+    prior N(truth + (0, 4) m, 0.1^2 m^2 I) is wrong and too sure (Storms' filter after an unannounced turn). Along
+    east the log posterior is -x^2 / (2 s_p^2) - 2 (4 - x)^2 (x m from the prior towards the truth), so its peak is
+    x = 16 / (4 + 1 / s_p^2):
+    * s_p = 0.1 m: x = 0.154 m, residual 3.85 m x 20 nT/m = 7.7 sigma (4.4 per component): a wrong fix;
+    * searched again with s_p x 4 = 0.4 m: x = 1.56 m, residual 4.9 sigma (2.8 per component > 2.5): still wrong;
+    * with s_p x 16 = 1.6 m: x = 3.644 m, residual 0.36 m x 20 = 0.71 sigma (0.41 per component): issued, the fix
+      0.356 m from the truth on the prior's side."""
+    fmap = _linear_vector_map(20.0, 20.0)
+    truth = np.array([20.0, 17.0])
+    prior = truth + np.array([0.0, 4.0])
+    plain = _one_fix(BayesGridMatcher(map_sigma=0.0, guards=False), fmap, truth, prior, 0.1)
+    assert local(fmap, plain.lat, plain.lon) - truth == pytest.approx([0.0, 4.0 - 0.154], abs=0.03)
+    bg = BayesGridMatcher(map_sigma=0.0, guards=False, research_residual_sigma=2.5)
+    fix = _one_fix(bg, fmap, truth, prior, 0.1)
+    assert fix.available, fix.reason
+    assert local(fmap, fix.lat, fix.lon) - truth == pytest.approx([0.0, 4.0 - 3.644], abs=0.03)
+    # one wider search only (s_p 0.4 m): nothing passes -> no fix, with the reason
+    one = _one_fix(BayesGridMatcher(map_sigma=0.0, guards=False, research_residual_sigma=2.5, research_steps=1),
+                   fmap, truth, prior, 0.1)  # fmt: skip
+    assert not one.available and one.reason.startswith("large residual")
+
+
+def test_research_leaves_a_consistent_fix_alone_and_checks_its_options():
+    fmap = _linear_vector_map(20.0, 20.0)
+    truth = np.array([20.0, 17.0])
+    prior = truth + np.array([0.1, -0.2])
+    a = _one_fix(BayesGridMatcher(map_sigma=0.0, guards=False), fmap, truth, prior, 0.3)
+    b = _one_fix(BayesGridMatcher(map_sigma=0.0, guards=False, research_residual_sigma=2.5), fmap, truth, prior, 0.3)
+    assert (a.lat, a.lon) == (b.lat, b.lon) and np.array_equal(a.cov_ne, b.cov_ne)
+    for bad in ({"research_residual_sigma": 0.0}, {"research_factor": 1.0}, {"research_steps": 0}):
+        with pytest.raises(ConfigError, match="research"):
+            BayesGridMatcher(**bad)
+
+
+def test_lobe_lines_count_a_known_rival_once_window_lines_count_it_twice():
+    """The two equal wells of the test above (0.8 m apart along north), the prior narrow on the first. The rival's
+    share of the peaks is 1/2, so R must grow by w d^2 = 0.32 m^2 along north for it, and by nothing more. With the
+    lines over the whole window (Storms' lines as first implemented) the north line already runs through the second
+    well: its pdf has two equal lobes, mean 0.4 m, so sigma_N is about 0.4 m (not the single well's width) and the
+    rival term comes on top: counted twice. With ``line_extent = "lobe"`` the lines stop at the first minimum, so
+    north and east spreads are the single well's (equal: the well is round) and R_NN - R_EE is the rival's 0.32."""
+    ax = np.arange(-2.0, 2.0001, 0.05)
+    n, e = np.meshgrid(ax, ax, indexing="ij")
+    well = lambda n0: np.exp(-((n - n0) ** 2 + e**2) / (2 * 0.15**2))  # noqa: E731
+    fmap = GridMap(ax, ax, 100.0 * (1.0 - well(0.0) - well(0.8)), kind="total_field_anomaly_nt", frame="local",
+                   altitude_m=0.0, origin=ORIGIN)  # fmt: skip
+    prior = nav_estimate(fmap, 0.0, np.array([0.0, 0.0]), np.zeros(2), np.eye(2) * 0.01)
+    rd = FieldReadings(np.array([0.0]), np.array([0.0]), 10.0, "total_field_anomaly_nt")
+    R = {}
+    for extent in ("window", "lobe"):
+        for cover in (False, True):
+            m = BayesGridMatcher(guards=False, map_sigma=0.0, cover_rivals=cover, rivals_of="likelihood",
+                                 quantisation=0.0, line_extent=extent)  # fmt: skip
+            fix = m.to_fix(m.update(m.initiate(prior), rd, fmap))
+            assert fix.available, fix.reason
+            R[extent, cover] = np.asarray(fix.cov_ne)
+    own = R["lobe", False]
+    assert own[0, 0] == pytest.approx(own[1, 1], rel=0.02)  # the lobe lines see one round well
+    assert own[0, 0] < 0.02  # ... a narrow one (sigma < 0.14 m)
+    assert R["lobe", True][0, 0] - own[1, 1] == pytest.approx(0.32, rel=0.05)  # the rival, once
+    assert np.sqrt(R["window", False][0, 0]) == pytest.approx(0.4, abs=0.05)  # the window line: both wells
+    assert R["window", True][0, 0] > R["lobe", True][0, 0] + 0.1  # ... and the rival again on top
+    with pytest.raises(ConfigError, match="line_extent"):
+        BayesGridMatcher(line_extent="line")
+
+
+def test_fix_at_likelihood_puts_the_fix_on_the_likelihood_peak_the_prior_picked():
+    """The linear field of the R-rule test: the posterior peak lies at truth + (0, 2.4) m (pulled by the prior at
+    truth + (0, 3) m); the likelihood alone peaks at the truth, so with ``fix_at = "likelihood"`` the fix is the
+    truth and R (the likelihood lines through it) is the same diag(1, 4) m^2."""
+    fmap = _linear_vector_map(10.0, 5.0)
+    truth = np.array([20.0, 17.0])
+    kw = {"window_sigma": 10.0, "map_sigma": 0.0, "tail": 0.1587}
+    post = _one_fix(BayesGridMatcher(**kw), fmap, truth, truth + [0.0, 3.0], 1.0)
+    lik = _one_fix(BayesGridMatcher(fix_at="likelihood", **kw), fmap, truth, truth + [0.0, 3.0], 1.0)
+    assert local(fmap, post.lat, post.lon) == pytest.approx(truth + [0.0, 2.4], abs=0.03)
+    assert local(fmap, lik.lat, lik.lon) == pytest.approx(truth, abs=0.03)
+    assert np.diag(lik.cov_ne) == pytest.approx([1.0 + 0.05**2 / 12, 4.0 + 0.05**2 / 12], rel=0.02)
+    with pytest.raises(ConfigError, match="fix_at"):
+        BayesGridMatcher(fix_at="prior")
+
+
+def test_lobe_lines_count_the_grid_quantisation_once():
+    """Linear field (a = 10, b = 5 nT/m) on a coarse 0.5 m grid, reading sigma 10 nT: the likelihood holds the node
+    error |grad|^2 step^2 / 12 = 125 x 0.25 / 12 = 2.60 nT^2, so its lines are Gaussian with sigma^2 = (100 + 2.60)
+    / a^2 = 1.026 m^2 (north) and / b^2 = 4.104 m^2 (east): the quantisation is in them already. The window lines add
+    step^2 / 12 = 0.0208 m^2 on top (as before); the lobe lines do not (the lines of a linear field have no minimum,
+    so both run over the same nodes and differ by that term only)."""
+    n_ax = np.arange(0.0, 40.0, 0.5)
+    gn, ge = np.meshgrid(n_ax, n_ax, indexing="ij")
+    fmap = GridMap(n_ax, n_ax, np.stack([10.0 * gn, 5.0 * ge, np.zeros_like(gn)], axis=-1), kind=KIND_V,
+                   frame="local", altitude_m=0.0, origin=ORIGIN)  # fmt: skip
+    truth = np.array([20.0, 17.0])
+    kw = {"window_sigma": 4.0, "map_sigma": 0.0, "tail": 0.1587, "quantisation": 0.0, "guards": False}
+    win = _one_fix(BayesGridMatcher(line_extent="window", **kw), fmap, truth, truth, 3.0)
+    lobe = _one_fix(BayesGridMatcher(line_extent="lobe", **kw), fmap, truth, truth, 3.0)
+    assert np.diag(win.cov_ne - lobe.cov_ne) == pytest.approx([0.25 / 12, 0.25 / 12], rel=1e-6)
+    # the 16 % tail rule on nodes 0.5 m apart: within 2 % for the 2 m east sigma, 6 % for the 1 m north one
+    assert lobe.cov_ne[1, 1] == pytest.approx(102.6 / 25.0, rel=0.02)
+    assert lobe.cov_ne[0, 0] == pytest.approx(102.6 / 100.0, rel=0.07)

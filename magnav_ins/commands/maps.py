@@ -101,6 +101,10 @@ def map_summary(fmap: Any) -> dict[str, Any]:
         }
     else:
         out["error_layer"] = None
+    from ..aiding.matchers.map_error import resolve_level
+
+    lvl = resolve_level(fmap)
+    out["level_sigma"] = {"sigma": lvl.sigma, "source": lvl.source, "detail": lvl.detail}
     if fmap.frame == "local":
         out["origin_deg_m"] = [fmap.origin[0] * RAD_TO_DEG, fmap.origin[1] * RAD_TO_DEG, fmap.origin[2]]
         w, e, s, n = fmap.region
@@ -136,6 +140,7 @@ def run_info(args: argparse.Namespace) -> int:
         ("values", f"{s['value_range'][0]:.3f} .. {s['value_range'][1]:.3f} {s['unit']} (rms {s['value_rms']:.3f})"),
         ("no data", f"{100 * s['no_data_fraction']:.1f} % of nodes"),
         ("error layer", _error_text(s)),
+        ("level offset", _level_text(s)),
     ]
     if "used_as" in s:
         rows.insert(4, ("used", s["used_as"]))
@@ -155,6 +160,16 @@ def _error_text(s: dict[str, Any]) -> str:
     return (
         f"1-sigma median {e['sigma_median']:.3g}, 90 % {e['sigma_p90']:.3g}, range {e['sigma_range'][0]:.3g} .. "
         f"{e['sigma_range'][1]:.3g} {s['unit']}; correlation length {e['correlation_m']:.0f} m; {e['source']}"
+    )
+
+
+def _level_text(s: dict[str, Any]) -> str:
+    lv = s["level_sigma"]
+    where = "stated in the map" if lv["source"] == "map" else "the matchers' stated default"
+    detail = f": {lv['detail']}" if lv["detail"] else ""
+    return (
+        f"1-sigma {lv['sigma']:.3g} {s['unit']} ({where}{detail}), the prior of the constant offset between a "
+        "flight's readings and the map that the matchers marginalise"
     )
 
 
@@ -189,6 +204,15 @@ def _add_grid(map_sub: argparse._SubParsersAction) -> None:
         metavar="K",
         help="folds of the block cross-validation that estimates the map's error layer (0: no layer; default 5)",
     )
+    p.add_argument(
+        "--level-sigma",
+        type=float,
+        default=None,
+        metavar="S",
+        help="1-sigma (map unit) of a constant offset between a flight's readings and the map, stored with the map "
+        "for the matchers to marginalise (default: none stored; the matchers then use the larger of 10 %% of the map's "
+        "std and the survey's crossover level differences)",
+    )
     p.add_argument("--float32", action="store_true", help="store values as float32 (half the size)")
     p.add_argument("--out", default=None, metavar="MAP.nc", help="output NetCDF (default: SURVEY name + .nc here)")
     p.add_argument("--quiet", action="store_true", help="print nothing")
@@ -212,6 +236,8 @@ def run_grid(args: argparse.Namespace) -> int:
     from ..maps.io import parse_column_mapping, read_survey, select_lines, write_map
 
     log_to_stderr(args)
+    if args.level_sigma is not None and not (np.isfinite(args.level_sigma) and args.level_sigma >= 0):
+        raise InputError(f"--level-sigma: expected a number >= 0 (map unit), got {args.level_sigma}")
     exclude = _parse_ids(args.exclude_lines)
     src = Path(args.survey)
     out = check_output_file(Path(args.out) if args.out else Path(src.name.split(".")[0] + ".nc"))
@@ -240,7 +266,13 @@ def run_grid(args: argparse.Namespace) -> int:
     if args.error_folds < 0 or args.error_folds == 1:
         raise InputError(f"--error-folds: expected 0 (no error layer) or at least 2, got {args.error_folds}")
     fmap = grid_survey(
-        used, args.spacing, exclude_lines=exclude, method=args.method, name=out.stem, error_folds=args.error_folds
+        used,
+        args.spacing,
+        exclude_lines=exclude,
+        method=args.method,
+        name=out.stem,
+        error_folds=args.error_folds,
+        level_sigma=args.level_sigma,
     )
     fmap.metadata["source"] = src.name
     fmap.metadata["heights"] = survey.heights

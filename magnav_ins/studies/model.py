@@ -239,7 +239,10 @@ def build_map(sc: Scenario) -> Any:
     (:func:`magnav_ins.studies.grids.read_gravity_grid`: ``unit``, ``altitude_m``, ``datum``, ``variable``,
     ``continue_to_m``), else ``maps.io.load_map`` (NetCDF, ``builtin:NAME``, survey gridded on load). Options
     ``error_sigma`` (map unit) and ``error_correlation_m`` (m, default two node spacings) attach a uniform error layer
-    (``GridMap.with_error_layer``): 0 when the study draws its readings from the map itself."""
+    (``GridMap.with_error_layer``): 0 when the study draws its readings from the map itself. Option ``level_sigma``
+    (map unit, >= 0) states the 1-sigma of a constant level offset between the readings and the map
+    (``metadata["level_sigma"]``, read by :func:`magnav_ins.aiding.matchers.map_error.resolve_level`); a map stated
+    exact (``error_sigma = 0``) has no level offset either, unless ``level_sigma`` says otherwise."""
     m = sc.map
     if m is None:
         raise ConfigError(f"{sc.source}: the scenario has no [map]")
@@ -275,7 +278,9 @@ def build_map(sc: Scenario) -> Any:
                 if opts:
                     raise TypeError(f"unknown options {sorted(opts)}")
                 if which == "random_field":  # the readings are drawn from it: the map is exact (map_error.py)
-                    return grid.with_error_layer(0.0, grid.metadata["correlation_length_m"], "synthetic: exact")
+                    exact = grid.with_error_layer(0.0, grid.metadata["correlation_length_m"], "synthetic: exact")
+                    exact.metadata.update(level_sigma=0.0, level_sigma_source="synthetic: readings drawn from the map")
+                    return exact
                 from ..maps.track import road_network_from_grid
 
                 # a street grid sampled every step_m along streets at the given northings / eastings (m)
@@ -289,6 +294,7 @@ def build_map(sc: Scenario) -> Any:
 
     err_sigma = opts.pop("error_sigma", None)
     err_corr = opts.pop("error_correlation_m", None)
+    level_sigma = opts.pop("level_sigma", None)
     try:
         if GRID_OPTIONS & set(opts):  # a downloaded gravity grid with an explicit unit (studies.grids)
             from .grids import read_gravity_grid
@@ -328,7 +334,31 @@ def build_map(sc: Scenario) -> Any:
             fmap = fmap.with_error_layer(float(err_sigma), corr, "stated in the scenario's [map] options")
         except (MagnavError, TypeError, ValueError) as exc:
             raise ConfigError(f"{sc.where('map.options')}: error_sigma / error_correlation_m: {exc}") from None
-    return fmap
+    return _with_level(sc, fmap, level_sigma, err_sigma)
+
+
+def _with_level(sc: Scenario, fmap: Any, level_sigma: Any, err_sigma: Any) -> Any:
+    """``fmap`` (a copy) stating its level prior: the scenario's ``level_sigma`` option (map unit, >= 0), else 0
+    when the scenario states the map exact (``error_sigma = 0``: the readings are drawn from this very map, so they
+    carry no level offset); unchanged otherwise (the map's own level prior or the matchers' stated default)."""
+    source = "stated in the scenario's [map] options"
+    if level_sigma is None and err_sigma is not None and float(err_sigma) == 0.0:
+        level_sigma, source = 0.0, "the map is stated exact (error_sigma = 0): the readings carry no level offset"
+    if level_sigma is None:
+        return fmap
+    try:
+        value = float(level_sigma)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (np.isfinite(value) and value >= 0.0):
+        raise ConfigError(
+            f"{sc.where('map.options')}: level_sigma must be a number >= 0 (map unit), got {level_sigma!r}"
+        )
+    if not hasattr(fmap, "with_values"):
+        raise ConfigError(f"{sc.where('map.options')}: level_sigma applies to a gridded map, not {type(fmap).__name__}")
+    out = fmap.with_values(fmap.values)  # a copy: a loaded map may be shared between studies
+    out.metadata.update(level_sigma=value, level_sigma_source=source)
+    return out
 
 
 def _shared(sc: Scenario) -> dict[str, Any]:

@@ -206,3 +206,60 @@ def local_gradient2(frame: WorkFrame, n: FloatArray, e: FloatArray, h: float) ->
     ge = frame.sample(n, e + h) - frame.sample(n, e - h)
     g2 = (gn.reshape(n.size, -1) ** 2 + ge.reshape(n.size, -1) ** 2).sum(axis=1) / (2 * h) ** 2
     return np.nan_to_num(g2)
+
+
+#: a rival peak counts when its likelihood density is at least this fraction of the best one (``rival_cover``)
+RIVAL_PEAK_RATIO = 0.01
+
+
+def rival_cover(
+    frame: WorkFrame,
+    y: FloatArray,
+    z: FloatArray,
+    v: FloatArray,
+    d_fix: FloatArray,
+    half: tuple[float, float],
+    step: float,
+    max_offsets: int,
+    min_separation_m: float,
+    peak_ratio: float = RIVAL_PEAK_RATIO,
+) -> tuple[FloatArray, int]:
+    """Covariance (2, 2) m^2 covering the rival minima of a batch match, and how many there are.
+
+    The batch's registered track ``y`` (T, 2) frame m (readings ``z`` (T, c), variances ``v`` (T,) map unit^2) is
+    translated by every offset ``d - d_fix`` of a regular grid over the gate (half-widths ``half`` m about the INS
+    position, spacing about ``step`` m, at most ``max_offsets`` nodes; ``d_fix`` (2,) m the fix's own offset from
+    the INS) and its Gaussian likelihood ``prod_t N(z_t; m(y_t + d - d_fix), v_t)`` evaluated. Rivals are the
+    likelihood's local maxima (3 x 3) at least ``min_separation_m`` from the fix holding at least ``peak_ratio`` of
+    the best density; the cover is their second moment about the fix, each weighted by its share of the peaks'
+    density (the fix's peak, the best density within ``min_separation_m`` of it, included): bayes_grid's
+    ``cover_rivals`` for a batch. Zero with no rival. A single best match's linearised covariance holds its own
+    peak's width only; when the batch fits several places of the gate almost equally (a long INS error against a
+    map whose features repeat) the fix may sit on the wrong one, and this term makes its covariance say so."""
+    from scipy import ndimage
+
+    on, oe, Dn, De = offset_grid(float(half[0]), float(half[1]), step, max_offsets)
+    nn, ne = int(np.unique(on).size), int(np.unique(oe).size)
+    K = on.size
+    ll = np.zeros(K)
+    sh_n, sh_e = on - float(d_fix[0]), oe - float(d_fix[1])
+    for t in range(y.shape[0]):
+        m = frame.sample(y[t, 0] + sh_n, y[t, 1] + sh_e).reshape(K, -1)
+        ll -= 0.5 * np.sum((m - z[t]) ** 2, axis=1) / v[t]
+    ll = np.where(np.isfinite(ll), ll, -np.inf)
+    if not np.any(np.isfinite(ll)):
+        return np.zeros((2, 2)), 0
+    lk = np.exp(ll - np.max(ll)).reshape(nn, ne)
+    dn, de = sh_n.reshape(nn, ne), sh_e.reshape(nn, ne)
+    far = dn**2 + de**2 >= float(min_separation_m) ** 2
+    if np.all(far):  # the fix is off the grid's nodes: its peak is the nearest node's neighbourhood
+        far = dn**2 + de**2 > np.min(dn**2 + de**2) + Dn**2 + De**2
+    lmax = (lk == ndimage.maximum_filter(lk, size=3, mode="constant", cval=0.0)) & (lk >= peak_ratio)
+    rivals = lmax & far
+    if not np.any(rivals):
+        return np.zeros((2, 2)), 0
+    dens_fix = float(np.max(lk[~far])) if np.any(~far) else 0.0
+    dens = lk[rivals]
+    w = dens / (dens_fix + dens.sum())
+    d = np.column_stack([dn[rivals], de[rivals]])
+    return (d * w[:, None]).T @ d, int(rivals.sum())

@@ -192,14 +192,14 @@ def section_loglik(
     n_ax: FloatArray,
     e_ax: FloatArray,
     s2: float,
-    demean: bool,
+    demean: float,
     difference: bool,
 ) -> FloatArray:
     """Log-likelihood of a section of readings slid rigidly over a local grid (Shockley sec. 4.5), bilinear map
     values read straight from the grid ``values`` (ny, nx, c) with axes ``y0 + i dy`` (north), ``x0 + j dx``
     (east). ``pos`` (nz, 2) are the readings' INS positions in the grid's axes, ``z`` (nz, c) the readings; the
-    candidate offsets are ``n_ax`` x ``e_ax``. ``difference`` uses successive differences, ``demean`` removes the
-    section means (in that order); ``s2`` is the variance of the (differenced) residual. ``-inf`` off the grid."""
+    candidate offsets are ``n_ax`` x ``e_ax``. ``difference`` uses successive differences, ``demean`` removes that
+    fraction of the section means (in that order; 1 = all, a marginalised level offset is less, ``map_error.level_fraction``); ``s2`` is the variance of the (differenced) residual. ``-inf`` off the grid."""
     ny, nx, c = values.shape
     nz = pos.shape[0]
     ni, nj = n_ax.shape[0], e_ax.shape[0]
@@ -237,12 +237,12 @@ def section_loglik(
                     for m in range(c):
                         res[k, m] = res[k + 1, m] - res[k, m]
                 n_use = nz - 1
-            if demean and n_use > 1:
+            if demean > 0.0 and n_use > 1:
                 for m in range(c):
                     mu = 0.0
                     for k in range(n_use):
                         mu += res[k, m]
-                    mu /= n_use
+                    mu = demean * mu / n_use
                     for k in range(n_use):
                         res[k, m] -= mu
             acc = 0.0

@@ -24,7 +24,19 @@ At each update:
    * ``"spread"``: the 16 % tail points of the slices (of the likelihood, or with ``spread_of="posterior"`` of the
      posterior), their distances measured to the *peak* (this module's reading of sec. 3.4.2.4 before 2026-12-01).
 
-   The grid quantisation ``step^2 / 12`` is added to each. What R contains: the sensor noise and the map error
+   ``line_extent`` says how far the lines run: ``"window"`` (the whole prior window, as first implemented) or
+   ``"lobe"`` (out to the likelihood's first minimum on each side of the peak: the fix's own lobe). Storms does not
+   say; over the window a line through the peak also runs through the likelihood's other peaks on it, so with
+   ``cover_rivals`` those are counted twice (in the line and again as rivals): ``"lobe"`` counts each once
+   (own lobe spread + the rivals' second moment; ``tests/test_storms.py``, two wells of known share).
+   ``fix_at``: ``"posterior"`` (Storms: the fix is the posterior peak) or ``"likelihood"`` (the prior picks the
+   peak, the fix is the likelihood's own local maximum reached from it by steepest ascent): R describes the
+   likelihood alone, so the fix it goes with is then the likelihood's too, not pulled towards the prior, whose
+   information the filter adds itself.
+
+   The grid quantisation ``step^2 / 12`` is added to each, except to Storms' rule with ``"lobe"`` lines when the
+   likelihood holds the node error (below): ``s^2`` then has ``|grad|^2 step^2 / 12``, which widens the lobe by at
+   least ``step^2 / 12`` in each direction, so it is in R once already. What R contains: the sensor noise and the map error
    (through the likelihood's ``s^2``), the spread of the likelihood along the two lines through the peak, and the
    node quantisation; not the map error's correlation between successive fixes (a fix every 1.5 s at 0.5 m/s
    reads the map 0.75 m further on).
@@ -47,6 +59,14 @@ likelihood's own peaks anywhere in the window holding at least ``peak_ratio`` of
 that acts when the filter's prior is wrong and too sure of itself (Storms' filter through the turn without the turn
 command): the prior then suppresses the true peak in the posterior, and only the likelihood still shows it.
 
+Residual monitoring with a wider search (``research_residual_sigma``, off by default; Storms sec. 4.3.3 and 4.5.1
+recommend "residual monitoring, likelihood thresholding"): a fix whose reading residual at the peak exceeds that many
+sigmas per component is not where the vehicle is: the filter's prior is wrong and too sure of itself (Storms' filter
+after a turn its model did not expect, or after a run of wrong peaks). The grid is searched again with the prior's
+covariance scaled by ``research_factor^2`` (up to ``research_steps`` times; the guards on for these searches, so a
+re-acquisition must be unambiguous) and the first fix whose residual passes is issued; if none, "no fix: large
+residual". The filter then gets a fix far from its prior and moves to it.
+
 Off the map (``off_map``): ``"impossible"`` (default) gives nodes without map values zero likelihood, so the
 posterior is forced onto the mapped nodes even when the vehicle has left the map (the peak then sits on the map's
 edge); ``"unknown"`` gives them the likelihood of the reading under the map's own field statistics
@@ -58,7 +78,7 @@ with the reason.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,6 +128,35 @@ def _tail_sigma(pdf: FloatArray, x: FloatArray, x_peak: float, tail: float) -> f
     return 0.5 * (abs(x_peak - lo) + abs(hi - x_peak))
 
 
+def own_lobe(line: FloatArray, k: int) -> slice:
+    """The index range of the lobe of the 1-D ``line`` (values >= 0) that holds index ``k``: out to the nearest
+    local minimum (or zero) on each side of ``k``, inclusive; the line's ends when there is none."""
+    v = np.where(np.isfinite(line), line, 0.0)
+    lo = k
+    while lo > 0 and (lo == k or not (v[lo] <= 0.0 or (v[lo - 1] > v[lo] and v[lo + 1] >= v[lo]))):
+        lo -= 1
+    hi = k
+    while hi < len(v) - 1 and (hi == k or not (v[hi] <= 0.0 or (v[hi + 1] > v[hi] and v[hi - 1] >= v[hi]))):
+        hi += 1
+    return slice(lo, hi + 1)
+
+
+def climb(surface: FloatArray, start: tuple[int, ...]) -> tuple[int, int]:
+    """The local maximum of the 2-D ``surface`` reached from index ``start`` by steepest ascent over the 8
+    neighbours (NaN / -inf cells are never entered)."""
+    i, j = int(start[0]), int(start[1])
+    v = np.where(np.isfinite(surface), surface, -np.inf)
+    ni, nj = v.shape
+    while True:
+        i0, i1, j0, j1 = max(i - 1, 0), min(i + 2, ni), max(j - 1, 0), min(j + 2, nj)
+        block = v[i0:i1, j0:j1]
+        k = np.unravel_index(int(np.argmax(block)), block.shape)
+        bi, bj = i0 + int(k[0]), j0 + int(k[1])
+        if block[k] <= v[i, j] or (bi, bj) == (i, j):
+            return i, j
+        i, j = bi, bj
+
+
 def storms_sigma(pdf: FloatArray, x: FloatArray, tail: float = 0.16) -> float:
     """Storms' 1-sigma of an experimental pdf (sec. 3.4.2.4): the line of values ``pdf`` (any scale; normalised
     here) at the points ``x`` (m), the points leaving ``tail`` in each tail found, and their distances to the pdf's
@@ -148,6 +197,11 @@ class BayesGridMatcher:
     off_map: str = "impossible"
     max_off_map_mass: float = 0.5
     rivals_of: str = "posterior"
+    line_extent: str = "window"
+    fix_at: str = "posterior"
+    research_residual_sigma: float | None = None
+    research_factor: float = 4.0
+    research_steps: int = 2
     min_variability: float = 0.5
     max_nodes: int = 1_000_000
     quantisation: float = 1.0
@@ -159,6 +213,19 @@ class BayesGridMatcher:
             raise ConfigError(f"bayes_grid 'spread_of': expected 'likelihood' or 'posterior', got {self.spread_of!r}")
         if self.rivals_of not in ("posterior", "likelihood"):
             raise ConfigError(f"bayes_grid 'rivals_of': expected 'posterior' or 'likelihood', got {self.rivals_of!r}")
+        if self.research_residual_sigma is not None and not self.research_residual_sigma > 0:
+            raise ConfigError(
+                f"bayes_grid 'research_residual_sigma': expected > 0 or unset, got {self.research_residual_sigma!r}"
+            )
+        if not (self.research_factor > 1 and int(self.research_steps) >= 1):
+            raise ConfigError(
+                f"bayes_grid 'research_factor' / 'research_steps': expected > 1 / >= 1, got "
+                f"{self.research_factor!r} / {self.research_steps!r}"
+            )
+        if self.fix_at not in ("posterior", "likelihood"):
+            raise ConfigError(f"bayes_grid 'fix_at': expected 'posterior' or 'likelihood', got {self.fix_at!r}")
+        if self.line_extent not in ("window", "lobe"):
+            raise ConfigError(f"bayes_grid 'line_extent': expected 'window' or 'lobe', got {self.line_extent!r}")
         if self.off_map not in ("impossible", "unknown"):
             raise ConfigError(f"bayes_grid 'off_map': expected 'impossible' or 'unknown', got {self.off_map!r}")
         if self.covariance not in COVARIANCE_RULES:
@@ -193,6 +260,8 @@ class BayesGridMatcher:
         else:
             try:
                 fix, extra = self._posterior_fix(state, readings, fmap)
+                if self.research_residual_sigma is not None:
+                    fix, extra = self._research(state, readings, fmap, fix, extra)
             except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
                 fix, extra = Fix.no_fix(float(readings.t[-1]), f"map lookup failed: {exc}", self.name), {}
             state = BayesGridState(state.t, state.lat, state.lon, state.h, state.cov_ne, fix, extra)
@@ -202,6 +271,32 @@ class BayesGridMatcher:
     def to_fix(self, state: BayesGridState) -> Fix:
         """The last fix (a "no fix" before the first update)."""
         return state.fix if state.fix is not None else Fix.no_fix(state.t, "no update yet", self.name)
+
+    def _research(
+        self, state: BayesGridState, readings: FieldReadings, fmap: FieldMap, fix: Fix, extra: dict[str, float]
+    ) -> tuple[Fix, dict[str, float]]:
+        """Residual monitoring with a wider search (Storms sec. 4.3.3 / 4.5.1: "residual monitoring, likelihood
+        thresholding"): a fix whose reading residual at the peak exceeds ``research_residual_sigma`` per component
+        says the vehicle is not in the prior's region (the filter's prior is wrong and too sure: a turn its model
+        did not expect). The grid is then searched again with the prior's covariance scaled by
+        ``research_factor^2``, up to ``research_steps`` times, and the first fix whose residual passes is issued;
+        if none passes, "no fix: large residual"."""
+        lim = float(self.research_residual_sigma)  # type: ignore[arg-type]
+        if not fix.available or extra.get("residual_sigma", 0.0) <= lim:
+            return fix, extra
+        res = extra.get("residual_sigma", float("nan"))
+        strict = replace(self, guards=True, research_residual_sigma=None)  # a re-acquisition must be unambiguous
+        for k in range(1, self.research_steps + 1):
+            wide = BayesGridState(
+                state.t, state.lat, state.lon, state.h, state.cov_ne * self.research_factor ** (2 * k), state.fix
+            )
+            f2, x2 = strict._posterior_fix(wide, readings, fmap)
+            if f2.available and x2.get("residual_sigma", np.inf) <= lim:
+                return f2, {**x2, "research": float(k)}
+        return Fix.no_fix(
+            float(readings.t[-1]), f"large residual: {res:.3g} sigma per component, none within {lim:g} in a "
+            f"{self.research_factor ** self.research_steps:g}x wider search", self.name,
+        ), extra  # fmt: skip
 
     # ------------------------------------------------------------------ the grid
     def _posterior_fix(
@@ -308,10 +403,16 @@ class BayesGridMatcher:
             return Fix.no_fix(
                 t, f"ambiguous: {int(rivals.sum())} other peak(s) in the prior region (ratio {ratio:.2f})", self.name
             ), {"peaks": float(rivals.sum() + 1)}
+        if self.fix_at == "likelihood":  # the prior picked the peak, the likelihood alone places the fix on it
+            kp = climb(loglik, kp)
+            n_fix, e_fix = float(gn[kp]), float(ge[kp])
+            far = (gn - n_fix) ** 2 + (ge - e_fix) ** 2 >= sep**2
         if self.covariance == "storms":  # sec. 3.4.2.4: the likelihood alone on the lines through the peak
             lik = np.exp(loglik - loglik[kp])
-            sig_n = storms_sigma(lik[:, kp[1]], n_ax, self.tail)
-            sig_e = storms_sigma(lik[kp[0], :], e_ax, self.tail)
+            ln, le = lik[:, kp[1]], lik[kp[0], :]
+            sn, se = (own_lobe(ln, kp[0]), own_lobe(le, kp[1])) if self.line_extent == "lobe" else (slice(None),) * 2
+            sig_n = storms_sigma(ln[sn], n_ax[sn], self.tail)
+            sig_e = storms_sigma(le[se], e_ax[se], self.tail)
             R = np.diag([sig_n**2, sig_e**2])
         elif self.covariance == "posterior":
             dn, de = gn - n_fix, ge - e_fix
@@ -323,7 +424,9 @@ class BayesGridMatcher:
             sig_n = _tail_sigma(src[:, kp[1]], n_ax, n_fix, self.tail)
             sig_e = _tail_sigma(src[kp[0], :], e_ax, e_fix, self.tail)
             R = np.diag([sig_n**2, sig_e**2])
-        R = R + np.eye(2) * step**2 / 12.0
+        node_in_lik = np.isfinite(g_rms) and g_rms > 0
+        if not (self.line_extent == "lobe" and self.covariance == "storms" and node_in_lik):
+            R = R + np.eye(2) * step**2 / 12.0  # (the lobe of a likelihood holding the node error has it already)
         if self.cover_rivals and self.rivals_of == "likelihood":  # the likelihood's own peaks in the window
             lk = np.exp(loglik - np.max(loglik))
             lmax = (lk == ndimage.maximum_filter(lk, size=3, mode="constant", cval=0.0)) & (lk >= self.peak_ratio)

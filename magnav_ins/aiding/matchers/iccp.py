@@ -19,7 +19,10 @@ Fix covariance (ours; ICCP reports none): the linearised information of the read
 ``beta = (tr_n, tr_e, theta)``: ``I = sum_t a_t a_t' / v_t``, ``a_t = [g_t; g_t . R J (p_t - c)]`` with ``g_t`` the map
 gradient at ``y_t`` and ``J`` the 90-degree rotation, ``v_t = s_t^2 + |g_t|^2 (h^2 / 12 + r_t^2)`` (``h`` the contour
 sampling step, ``r_t`` the INS drift relative to the last scan), scaled by ``max(1, chi2)`` (the mean normalised
-misfit ``(z_t - m(y_t))^2 / v_t``), carried to ``y_T`` by ``A = [I_2, R J (p_T - c)]``. No fix: "flat map" when the
+misfit ``(z_t - m(y_t))^2 / v_t``), carried to ``y_T`` by ``A = [I_2, R J (p_T - c)]``. That covariance holds the width of the fix's own minimum only:
+with ``cover_rivals`` (default) it is widened by the second moment about the fix of the other minima of the
+registered track's translation likelihood over the gate (:func:`._batch.rival_cover`; issue 16: with the tactical
+IMU on QLD West ICCP's fixes sat on wrong minima with sigmas of a few hundred m). No fix: "flat map" when the
 level lines of fewer than 3 readings cross the gate or the fix adds no information over the prior
 (:func:`._batch.adds_information`); "diverged" when the misfit exceeds ``max_chi2`` or the fix leaves the gate.
 """
@@ -35,7 +38,7 @@ from scipy.spatial import cKDTree
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
-from ._batch import adds_information, information_refusal, local_gradient2, track_window
+from ._batch import adds_information, information_refusal, local_gradient2, rival_cover, track_window
 from ._local import map_components, spacing_of, window_axes
 
 FloatArray = NDArray[np.float64]
@@ -81,7 +84,9 @@ class ICCPMatcher:
     ``window_floor_m`` m) of the contour search region; ``iterations`` / ``tolerance_m`` of the ICP loop;
     ``rotation`` (rigid motion with rotation, else translation only); ``contour_step_m`` sampling of the map for the
     contours (default half the node spacing, at most a twentieth of the gate), coarsened to ``max_contour_nodes``
-    per scan; ``map_sigma`` / ``correlation_m`` override the map's error; ``max_chi2`` the misfit cut-off."""
+    per scan; ``map_sigma`` / ``correlation_m`` override the map's error; ``max_chi2`` the misfit cut-off;
+    ``cover_rivals`` widen the fix covariance over the rival minima of the registered track's translation
+    likelihood (:func:`._batch.rival_cover`, on an offset grid of at most ``max_offsets`` nodes)."""
 
     batch: int = 30
     gate_sigma: float = 4.0
@@ -94,6 +99,8 @@ class ICCPMatcher:
     map_sigma: float | None = None
     correlation_m: float | None = None
     max_chi2: float = 9.0
+    cover_rivals: bool = True
+    max_offsets: int = 40_000
     name: str = "iccp"
 
     def __post_init__(self) -> None:
@@ -181,6 +188,12 @@ class ICCPMatcher:
         cov_b = (V / np.maximum(ev, 1.0 / big)) @ V.T * max(1.0, chi2)
         A = np.eye(2) if not self.rotation else np.column_stack([np.eye(2), R @ _J @ (tw.x_ins[-1] - c)])
         C = A @ cov_b @ A.T + np.eye(2) * step**2 / 12.0
+        if self.cover_rivals:  # the registered track fits elsewhere in the gate too: C covers those minima
+            ostep = min(0.25 * spacing_of(fmap, min(hn, he) / 10.0), min(hn, he) / 20.0)
+            sep = max(3.0 * float(np.sqrt(np.max(np.linalg.eigvalsh(C)))), 4.0 * ostep)
+            cover, _ = rival_cover(tw.frame, yg[ok], tw.z[good][ok], v + g2 * ostep**2 / 6.0, yT - tw.x_ins[-1],
+                                   (hn, he), ostep, self.max_offsets, sep)  # fmt: skip
+            C = C + cover
         prior = tw.cov[-1]
         if not adds_information(C, prior, (hn, he)):
             return information_refusal(t_last, C, prior, self.name, chi2, (hn, he))

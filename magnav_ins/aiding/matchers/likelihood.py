@@ -27,12 +27,23 @@ The scan runs over a search window around the prior (the thesis' suggested impro
 half-width ``window_sigma`` times the prior 1-sigma, widened up to ``window_growth`` times by 2 while the
 likelihood's peak region reaches its edge) or over the whole grid map (``search_window=False``).
 
+Level offset (issue 13; ``level_sigma``). Readings and map may differ by a constant level ``b`` over the section
+(the map's levelling, diurnal variation, the platform's own field: Osborne's tie lines sit 17-30 nT below its flight
+lines), which is not a per-node map error. It is marginalised with the prior ``b ~ N(0, sigma_b^2)``,
+``sigma_b`` the map's level prior (:func:`~.map_error.resolve_level`: ``metadata["level_sigma"]``, else 10 % of the
+map's std; the option overrides it, 0 = absolute levels as in the thesis): by Sherman-Morrison the scan's
+``r' (s^2 I + sigma_b^2 1 1')^-1 r`` is ``|r - gamma mean(r)|^2 / s^2`` with ``gamma = 1 - sqrt(s^2 / (s^2 + K
+sigma_b^2))`` (:func:`~.map_error.level_fraction`), so the scan removes that fraction of the section mean from
+readings and map profile (``demean`` is ``gamma = 1``, a diffuse level; with ``demean`` or ``difference`` there is
+no level term, nothing is counted twice); the honest covariance below has ``sigma_b^2 1 1'`` in the section
+covariance and ``T = I - gamma / K 1 1'`` as the scan's transform. A single reading gets ``sigma_b^2`` as variance.
+
 What the fix covariance contains (issue 13; :mod:`.map_error`). The scan's likelihood uses the variance
 ``sigma_reading^2 + sigma_map^2`` (the map's error layer at the section, or ``map_sigma``, or the stated default)
 plus the node error ``|grad|^2 step^2 / 12``, as if the readings were independent. They are not: the map error is
 correlated over its correlation length, and the INS track the section is slid along drifts. So before its
 moments are taken the surface is divided by a temperature: the sandwich factor (White 1982) of the section's full
-residual covariance ``sigma_s^2 I + D C D + node error + G P_drift G'`` (map error correlation ``C``, INS drift
+residual covariance ``sigma_s^2 I + D C D + node error + sigma_b^2 1 1' + G P_drift G'`` (map error correlation ``C``, INS drift
 over the section from the growth of the window's covariances, :func:`ins_drift_rate`) against the scan's
 diagonal one, times the section's misfit chi-square per degree of freedom when that exceeds its 99 % quantile (the
 residuals at the fix are larger than the model says), times ``K / new readings`` when the window shares readings
@@ -80,8 +91,11 @@ from ._local import (
     window_axes,
 )
 from .map_error import (
+    LevelModel,
     MapErrorModel,
+    level_fraction,
     off_map_loglik,
+    resolve_level,
     resolve_map_error,
     section_covariance,
     section_transform,
@@ -143,6 +157,13 @@ class Section:
     t: FloatArray | None = None
     drift_mps: FloatArray | None = None
     tau: FloatArray | None = None
+    level: LevelModel | None = None
+    level_frac: float = 0.0
+
+    @property
+    def level_var(self) -> float:
+        """Variance (unit^2) of the section's constant level offset (0 without the level term)."""
+        return 0.0 if self.level is None else float(self.level.sigma) ** 2
 
 
 @dataclass
@@ -164,7 +185,8 @@ class LikelihoodMatcher:
     ``map_correlation_m`` overrides the map's error correlation length (m); ``honest`` applies the temperature;
     ``ambiguity_mass`` (0.05; 1 = off); ``count_overlap``; ``track_error`` (INS drift in the section covariance);
     ``window_growth`` (widenings of the search window); ``off_map`` "impossible" | "unknown" and
-    ``max_off_map_mass`` (module docstring). The module docstring says what the covariance contains.
+    ``max_off_map_mass``; ``level_sigma`` the level offset's prior 1-sigma (None = the map's, 0 = none) (module
+    docstring). The module docstring says what the covariance contains.
 
     The matcher remembers the time of the last reading of its last issued fix (``count_overlap``): one instance
     serves one stream of windows (a window whose last reading is not newer starts a new stream)."""
@@ -197,6 +219,7 @@ class LikelihoodMatcher:
     window_growth: int = 2
     off_map: str = "impossible"
     max_off_map_mass: float = 0.5
+    level_sigma: float | None = None
     name: str = ""
     _last_fix_t: float = field(default=-np.inf, init=False, repr=False, compare=False)
 
@@ -215,6 +238,8 @@ class LikelihoodMatcher:
             raise ConfigError(
                 "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m >= 0"
             )
+        if self.level_sigma is not None and not self.level_sigma >= 0:
+            raise ConfigError(f"likelihood matcher 'level_sigma': expected >= 0 or None, got {self.level_sigma!r}")
         if self.off_map not in ("impossible", "unknown"):
             raise ConfigError(f"likelihood matcher 'off_map': expected 'impossible' or 'unknown', got {self.off_map!r}")
         if not self.name:
@@ -260,10 +285,14 @@ class LikelihoodMatcher:
         t_sec = np.asarray(rd.t, dtype=float)[good]
         drift = ins_drift_rate(t_sec, cov[good] if cov.ndim == 3 else None) if self.track_error else np.zeros(2)
         tau = _section_times(t_sec, dn, de) if self.track_error else None
-        sec = Section(dn, de, z, h_last, float(rd.sigma), s2_base, err, t_sec, drift, tau)
+        # the level offset (module docstring): none when the section is differenced (it cancels) or demeaned
+        lvl = None if ((self.difference and nz > 1) or self.demean) else resolve_level(fmap, self.level_sigma)
+        lv = 0.0 if lvl is None else float(lvl.sigma) ** 2
+        sec = Section(dn, de, z, h_last, float(rd.sigma), s2_base, err, t_sec, drift, tau, lvl)
         if _is_track(fmap):
-            out = self._track_surface(fmap, frame, z, dn, de, half_n, half_e, s2_base)
-            return out if isinstance(out, str) else replace(out, section=sec)
+            frac = 1.0 if self.demean else level_fraction(lv, s2_base, nz)
+            out = self._track_surface(fmap, frame, z, dn, de, half_n, half_e, s2_base, frac)
+            return out if isinstance(out, str) else replace(out, section=replace(sec, level_frac=frac))
         s2 = s2_base
         native = frame.native(-half_n, half_n, -half_e, half_e) if self.resolution_m is None else None
         g_rms = _gradient_rms(native, fmap, window)
@@ -289,6 +318,7 @@ class LikelihoodMatcher:
                 s2 = s2 + g_rms**2 * step**2 / 12.0
             ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
             if nz == 1 and not (self.demean or self.difference):  # the fast path: one compiled pass
+                s2 = s2 + lv  # one reading: its level offset is more variance
                 l2, kmax, variability = grid_scan1(v_last, np.ascontiguousarray(z[0]), s2, ic, jc)
                 return Surface(
                     frame, l2.ravel(), n_ax, e_ax, l2.shape, step, float(variability), s2, (half_n, half_e), int(kmax),
@@ -311,16 +341,20 @@ class LikelihoodMatcher:
                 v3, y0, dy, x0, dx = grid
                 pos = np.column_stack([dn + frame.n0, de + frame.e0])  # type: ignore[union-attr]
                 s2r = 2.0 * s2 if (self.difference and nz > 1) else s2
+                frac = 1.0 if self.demean else level_fraction(lv, s2, nz)
+                if nz == 1:
+                    s2r = s2r + lv
                 l2 = section_loglik(
-                    v3, y0, dy, x0, dx, pos, np.ascontiguousarray(z), n_ax, e_ax, s2r, self.demean, self.difference
+                    v3, y0, dy, x0, dx, pos, np.ascontiguousarray(z), n_ax, e_ax, s2r, frac, self.difference
                 )
                 last = frame.sample(*np.meshgrid(n_ax, e_ax, indexing="ij"), h_last)
                 last = np.ascontiguousarray(last.reshape(n_ax.size, e_ax.size, ncomp))
                 ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
                 variability = float(grid_variability(last, ic, jc))
                 return Surface(
-                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, variability, s2r, (half_n, half_e), section=sec
-                )
+                    frame, l2.ravel(), n_ax, e_ax, l2.shape, step, variability, s2r, (half_n, half_e),
+                    section=replace(sec, level_frac=frac),
+                )  # fmt: skip
             gn, ge = np.meshgrid(n_ax, e_ax, indexing="ij")
             m = frame.sample(dn[:, None, None] + gn[None], de[:, None, None] + ge[None], h_last)
             m = m.reshape(nz, gn.size, ncomp)
@@ -328,15 +362,19 @@ class LikelihoodMatcher:
                 s2 = s2 + g_rms**2 * step**2 / 12.0
             ic, jc = int(np.argmin(np.abs(n_ax))), int(np.argmin(np.abs(e_ax)))
             variability = float(grid_variability(np.ascontiguousarray(m[-1].reshape(gn.shape + (ncomp,))), ic, jc))
+        frac = 1.0 if self.demean else level_fraction(lv, s2, nz)
+        if nz == 1:
+            s2 = s2 + lv
         zz, mm = z[:, None, :], m
         if self.difference and len(z) > 1:
             zz, mm = np.diff(zz, axis=0), np.diff(mm, axis=0)
             s2 = 2.0 * s2
-        if self.demean and len(zz) > 1:
-            zz = zz - zz.mean(axis=0, keepdims=True)
-            mm = mm - mm.mean(axis=0, keepdims=True)
+        if frac > 0 and len(zz) > 1:
+            zz = zz - frac * zz.mean(axis=0, keepdims=True)
+            mm = mm - frac * mm.mean(axis=0, keepdims=True)
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
+        sec = replace(sec, level_frac=frac)
         return Surface(frame, logl, n_ax, e_ax, gn.shape, step, variability, s2, (half_n, half_e), section=sec)
 
     def _track_surface(
@@ -349,6 +387,7 @@ class LikelihoodMatcher:
         half_n: float,
         half_e: float,
         s2_base: float,
+        level_frac: float = 0.0,
     ) -> Surface | str:
         """Likelihood at the points of a road map (Shockley 003 sec. 4.3-4.5): the section of readings is slid
         along the road; reading k sits ``d_k`` metres (INS-travelled distance to the last reading) before the
@@ -389,9 +428,9 @@ class LikelihoodMatcher:
         if self.difference and nz > 1:
             zz, mm = np.diff(zz, axis=0), np.diff(mm, axis=0)
             s2 = 2.0 * s2
-        if self.demean and len(zz) > 1:
-            zz = zz - zz.mean(axis=0, keepdims=True)
-            mm = mm - mm.mean(axis=0, keepdims=True)
+        if level_frac > 0 and len(zz) > 1:
+            zz = zz - level_frac * zz.mean(axis=0, keepdims=True)
+            mm = mm - level_frac * mm.mean(axis=0, keepdims=True)
         logl = -0.5 * np.sum((zz - mm) ** 2, axis=(0, 2)) / s2
         logl = np.where(np.isfinite(logl), logl, -np.inf)
         step = float(np.median(np.diff(s_at)[np.diff(seg_run) == 0])) if len(s_at) > 1 else 1.0
@@ -570,14 +609,16 @@ class LikelihoodMatcher:
         lat, lon = frame.to_latlon(pn, pe)
         sm = sec.error.sigma_at(lat, lon)
         diff = self.difference and k > 1
-        node_var = max(surf.sigma2 / (2.0 if diff else 1.0) - sec.s2_base, 0.0)
+        lv = sec.level_var
+        node_var = max(surf.sigma2 / (2.0 if diff else 1.0) - sec.s2_base - (lv if k == 1 else 0.0), 0.0)
         sigma = section_covariance(pn, pe, sm, sec.sigma_sensor, sec.error.correlation_m)
         sigma[np.diag_indices(k)] += node_var
+        sigma += lv  # the level offset, sigma_b^2 1 1' (module docstring)
         if sec.drift_mps is not None and sec.tau is not None and sec.tau.size == k:
             for a in range(2):  # INS drift over the section: delta p_k = dv (t_k - t_K), rank one per axis
                 g = jac[:, :, a].sum(axis=1) * sec.tau * float(sec.drift_mps[a])
                 sigma += np.outer(g, g)
-        tr = section_transform(k, self.demean, self.difference)
+        tr = section_transform(k, self.demean, self.difference, sec.level_frac)
         kappa, topup = temperature_and_topup(jac, sigma, surf.sigma2, tr)
         resid = sec.z - m0
         phi = 1.0
@@ -612,7 +653,7 @@ def _flat_sigma2(surf: Surface, difference: bool) -> float:
     sec = surf.section
     if sec is None:
         return float(surf.sigma2)
-    map_var = max(sec.s2_base - sec.sigma_sensor**2, 0.0)
+    map_var = max(sec.s2_base - sec.sigma_sensor**2, 0.0) + (sec.level_var if sec.dn.size == 1 else 0.0)
     k = 2.0 if (difference and sec.dn.size > 1) else 1.0
     return max(float(surf.sigma2) - k * map_var, k * sec.sigma_sensor**2)
 

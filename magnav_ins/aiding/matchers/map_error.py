@@ -20,6 +20,16 @@ is sampled where it was measured, not interpolated: without ``map_sigma`` it is 
 survey's figure, not a law: a map whose error is known
 should carry a layer, or the matcher should be given ``map_sigma``.
 
+Level offset (:func:`resolve_level`, :func:`level_fraction`). Besides the per-node error, a flight's readings may
+sit a constant level off the map (the survey's levelling against the flight, diurnal variation, the platform's own
+field): Osborne's tie lines are 17-30 nT (mean -24 nT) below its flight lines' levelling. That is not a random
+per-node error: counted as one (in the error layer's inflation, as until 2026-12) it makes a matcher over-cautious
+about the field's shape and over-confident about its level. The batch matchers marginalise it per section with the
+prior ``N(0, sigma_b^2)`` (ML / MLR / ABL, PMHT); the particle filters carry it as a state with a diffuse prior
+(``level_sigma``); ``bayes_grid`` (one reading per fix) has no level term: a level shared by successive fixes is
+not a per-fix variance, and would need a level state in the fuser. ``sigma_b`` is the map's ``metadata["level_sigma"]`` (e.g. from a survey's tie-line crossovers),
+else :data:`DEFAULT_LEVEL_FRACTION_OF_STD` of the map's std.
+
 Correlation model. The map error is a zero-mean Gaussian process with the squared-exponential correlation
 ``rho(d) = exp(-(d / ell)^2)``: the correlation length ``ell`` (``GridMap.error_correlation_m``) is the lag where
 the correlation has fallen to 1/e, as :mod:`magnav_ins.maps.error_layer` measures it from the cross-validation
@@ -120,6 +130,70 @@ def resolve_map_error(
     return MapErrorModel("default", sig, float(correlation_m) if correlation_m is not None else corr)
 
 
+# ------------------------------------------------------------------------------------------------ level
+#: A map that states no level uncertainty (``metadata["level_sigma"]``): the 1-sigma of the constant offset between
+#: a flight's readings and the map is this fraction of the map's standard deviation (the same rule as the default
+#: map error; a magnetic anomaly map with a 100-300 nT spread gives 10-30 nT, the size of the Osborne tie lines'
+#: 17-30 nT offsets from the map's levelling).
+DEFAULT_LEVEL_FRACTION_OF_STD = 0.10
+
+
+@dataclass(frozen=True)
+class LevelModel:
+    """The prior of the constant level offset ``b`` between a section's readings and the map (the map's levelling,
+    diurnal variation, the platform's residual field): ``b ~ N(0, sigma^2)``, ``sigma`` in the map unit (0 = no
+    offset, the old absolute-level likelihood), one value per field component; ``source`` says where it came
+    from (``"option"``, ``"map"`` or ``"default"``) and ``detail`` how the map derived it."""
+
+    sigma: float
+    source: str
+    detail: str = ""
+
+    def describe(self) -> str:
+        """One line for reasons and logs."""
+        return f"level offset 1-sigma {self.sigma:.3g} ({self.source}{': ' + self.detail if self.detail else ''})"
+
+
+def resolve_level(fmap: FieldMap, level_sigma: float | None = None) -> LevelModel:
+    """The level-offset prior a matcher should use: ``level_sigma`` (map unit, >= 0; 0 switches the level term
+    off) overrides the map's own (``fmap.metadata["level_sigma"]``, stated when gridding,
+    :func:`magnav_ins.maps.build.grid_survey`, or by the user), else the stated default:
+    :data:`DEFAULT_LEVEL_FRACTION_OF_STD` of the map's standard deviation (what a new flight may add: diurnal
+    variation, its platform's field), or the survey's own crossover level differences
+    (``metadata["level_crossover"]``, :func:`magnav_ins.maps.build.crossover_level_sigma`) when larger; 0 for a map
+    that is not a grid."""
+    if level_sigma is not None:
+        return LevelModel(float(level_sigma), "option")
+    meta = getattr(fmap, "metadata", None) or {}
+    val = meta.get("level_sigma") if isinstance(meta, dict) else None
+    if isinstance(val, (int, float)) and np.isfinite(val) and val >= 0:
+        return LevelModel(float(val), "map", str(meta.get("level_sigma_source", "")))
+    if getattr(fmap, "spacing_m", None) is None:
+        return LevelModel(0.0, "default", "not a grid")
+    vals = np.asarray(getattr(fmap, "values", np.array([np.nan])), dtype=float)
+    std = float(np.nanstd(vals)) if np.any(np.isfinite(vals)) else 0.0
+    xo = meta.get("level_crossover") if isinstance(meta, dict) else None
+    xo_rms = float(xo.get("rms", 0.0)) if isinstance(xo, dict) else 0.0
+    if np.isfinite(xo_rms) and xo_rms > DEFAULT_LEVEL_FRACTION_OF_STD * std:
+        return LevelModel(xo_rms, "default", f"the survey's crossover level differences ({xo.get('lines')} lines)")
+    return LevelModel(
+        DEFAULT_LEVEL_FRACTION_OF_STD * std, "default", f"{DEFAULT_LEVEL_FRACTION_OF_STD:g} x the map's std"
+    )
+
+
+def level_fraction(level_var: float, s2: float, k: int) -> float:
+    """The fraction ``gamma`` of the section mean that a likelihood over ``k`` residuals of working variance ``s2``
+    subtracts when it marginalises a level offset of variance ``level_var``: with ``Sigma = s2 I + level_var 1 1'``,
+    ``r' Sigma^-1 r = |r - gamma mean(r) 1|^2 / s2`` (Sherman-Morrison) for ``gamma = 1 - sqrt(s2 / (s2 + k
+    level_var))``. 0 without a level (or one reading: then the level is only more variance), 1 for a diffuse one
+    (``demean``)."""
+    if k < 2 or not level_var > 0:
+        return 0.0
+    if not np.isfinite(level_var):
+        return 1.0
+    return float(1.0 - np.sqrt(s2 / (s2 + k * level_var)))
+
+
 # ------------------------------------------------------------------------------------------------ correlation
 def correlation(d_m: ArrayLike, ell_m: float) -> FloatArray:
     """Map-error correlation ``exp(-(d / ell)^2)`` at distance ``d_m`` (m); with an unknown (NaN) or zero
@@ -167,14 +241,16 @@ def markov_coefficient(ds_m: ArrayLike, ell_m: float) -> FloatArray:
 
 
 # ------------------------------------------------------------------------------------------------ sandwich
-def section_transform(k: int, demean: bool, difference: bool) -> FloatArray:
+def section_transform(k: int, demean: bool, difference: bool, level: float = 0.0) -> FloatArray:
     """The linear map ``T`` a likelihood matcher applies to a section's residuals: successive differences
-    ``(K-1, K)`` if ``difference``, then the removal of the mean if ``demean`` (identity otherwise)."""
+    ``(K-1, K)`` if ``difference``, then the removal of the mean if ``demean``, or of the fraction ``level`` of it
+    (:func:`level_fraction`: the marginalised level offset; ``T' T = Sigma_level^-1 s2``), identity otherwise."""
     t = np.eye(k)
     if difference and k > 1:
         t = np.diff(t, axis=0)
-    if demean and t.shape[0] > 1:
-        t = t - t.mean(axis=0, keepdims=True)
+    frac = 1.0 if demean else float(level)
+    if frac > 0 and t.shape[0] > 1:
+        t = t - frac * t.mean(axis=0, keepdims=True)
     return t
 
 
