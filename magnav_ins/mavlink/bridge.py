@@ -67,7 +67,7 @@ from ..core.types import Fix, NavEstimate, NavState
 from ..ins.strapdown import SAMPLE_TYPES
 from .baro import BaroHeight, hold_height
 from .field_model import ScalarAnomalyModel  # noqa: F401 - re-exported (its home until now)
-from .flat_world import earth_imu
+from .flat_world import FLAT_SPHERE_RADIUS_M, earth_imu
 from .gnss import GnssMonitor
 from .ground import GroundAlignment, StillDetector, normal_gravity_mps2
 from .link import (
@@ -164,6 +164,7 @@ class BridgeConfig:
     gnss_min_satellites: int = 6
     gnss_max_sigma_m: float = 10.0
     gnss_fix_interval_s: float = 1.0
+    gnss_lag_s: float = 0.0  # the receiver's latency: a GPS_RAW_INT position is that much older than its stamp
     gnss_timeout_s: float = 1.5
     gnss_recover_s: float = 10.0
     deny_gnss_after_s: float | None = None
@@ -175,6 +176,7 @@ class BridgeConfig:
     attitude_sigma_rad: tuple[float, float, float] = (0.01, 0.01, 0.035)  # tilt about N, E; heading
     statustext_interval_s: float = 2.0
     imu_world: str = "earth"  # "flat": the autopilot is a simulator with a flat, non-rotating world (.flat_world)
+    flat_sphere_radius_m: float | None = FLAT_SPHERE_RADIUS_M  # the sphere of the simulator's lat/lon (.flat_world)
 
     def __post_init__(self) -> None:
         from ..core.errors import ConfigError
@@ -206,6 +208,8 @@ class BridgeConfig:
             raise ConfigError(f"--ekf-source-set {self.ekf_source_set}: expected 1, 2 or 3")
         if self.deny_gnss_after_s is not None and not self.deny_gnss_after_s >= 0:
             raise ConfigError(f"--deny-gnss-after {self.deny_gnss_after_s}: expected seconds >= 0")
+        if not (math.isfinite(self.gnss_lag_s) and 0.0 <= self.gnss_lag_s <= 1.0):
+            raise ConfigError(f"--gnss-lag {self.gnss_lag_s}: expected 0-1 s")
         for name in ("init_sigma_m", "max_sigma_m", "gnss_max_sigma_m", "gnss_fix_interval_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -644,7 +648,7 @@ class Bridge:
         if not hasattr(self._pipeline, "push_fix") or self._last_imu_t - self._last_gnss_fix_t < c.gnss_fix_interval_s:
             return
         # ArduPilot and PX4 stamp GPS_RAW_INT on the boot clock, as the IMU; otherwise use the arrival time
-        t_fix = g.t if abs(g.t - self._last_imu_t) < 2.0 else self._last_imu_t
+        t_fix = (g.t if abs(g.t - self._last_imu_t) < 2.0 else self._last_imu_t) - c.gnss_lag_s
         t_fix = min(t_fix, self._last_imu_t)
         s2 = self._gnss.last_sigma_m**2
         fix = Fix(t_fix, g.lat, g.lon, np.diag([s2, s2]), True, "", math.nan, "gnss")
@@ -733,7 +737,7 @@ class Bridge:
             att = self._last_attitude
             q = q_nb_from_euler(att[0].roll, att[0].pitch, att[0].yaw) if att is not None else np.array([0, 0, 0, 1.0])
             v, lat, hgt = np.zeros(3), held.lat, held.h
-        gyro, accel = earth_imu(m.gyro_b, m.accel_b, q, v, lat, hgt)
+        gyro, accel = earth_imu(m.gyro_b, m.accel_b, q, v, lat, hgt, sphere_radius_m=self.config.flat_sphere_radius_m)
         return replace(m, gyro_b=gyro, accel_b=accel)
 
     def _reading(self, m: ImuMessage) -> None:
@@ -970,6 +974,7 @@ class Bridge:
                 log.info("map fix at t=%.1f s: %.7f, %.7f, sigma %.0f / %.0f m", f.t, math.degrees(f.lat),
                          math.degrees(f.lon), s[0], s[-1])  # fmt: skip
             if not f.available:
+                log.info("map: no fix at t=%.1f s: %s", f.t, f.reason)
                 key = f.reason.split(":")[0] or "unspecified"
                 self.health.no_fix_reasons[key] = self.health.no_fix_reasons.get(key, 0) + 1
         for x in inns[i0:]:

@@ -51,6 +51,12 @@ IGNORED = ("prearm", "arming", "ekf3 imu0 is using", "ekf3 imu1 is using", "magn
 #: rad/sqrt(s) and 6.2e-5 m/s/sqrt(s), accelerometer offsets 1.0e-3 m/s^2 (copter.parm's INS_ACCOFFS) and scale
 #: +0.11 % (INS_ACCSCAL), no gyro bias (the Earth's rate is put back by --imu-world flat; what the ground alignment
 #: leaves is its noise over 40 s, 7e-7 rad/s); the rest of the "navigation" preset (Honeywell H764-G) is smaller
+#: how much older the SITL's GPS_RAW_INT position is than its time stamp (the time the fix reached the autopilot), s:
+#: measured on a recorded flight against SIM_STATE at 10 m/s (the along-track offset crosses zero at 0.068 s; the SITL
+#: simulates a receiver latency, SIM_GPS1_LAG_MS = 100). Fused as if current, each fix put the INS 0.7-1 m behind and
+#: taught the filter a false deceleration while GNSS-aided (``tests/test_mavlink_playback.py``)
+SITL_GNSS_LAG_S = 0.07
+
 SITL_GRADE = json.dumps(
     {"base": "navigation", "arw": 4.2e-6, "vrw": 6.3e-5, "gyro_turn_on_sigma": 1e-6, "accel_turn_on_sigma": 1e-3,
      "accel_scale_sigma": 0.0011}
@@ -62,7 +68,9 @@ class FlightPlan:
     """What to fly (module docstring). ``home`` (lat, lon) deg, ``home_alt_m`` MSL; ``altitude_m`` above home;
     ``speed_mps`` the GUIDED cruise speed; ``deny_after_s`` after take-off; ``grade`` the IMU grade the bridge's filter
     assumes (None: the bridge's default); ``bridge_args`` more ``magnav-ins bridge`` arguments; ``time_limit_s``: stop
-    the square (and land) when the flight has lasted that long (None: no limit)."""
+    the square (and land) when the flight has lasted that long (None: no limit); ``warmup_m``: before the square,
+    a GNSS-aided L of that size and back (east, north, home; 0: none); the GNSS is denied ``deny_after_s`` after
+    take-off but not before the warm-up is flown."""
 
     home: tuple[float, float] = (-21.94, 140.76)
     home_alt_m: float = 380.0
@@ -78,6 +86,7 @@ class FlightPlan:
     keep: bool = False
     time_limit_s: float | None = None
     corners: tuple[tuple[float, float], ...] = field(default=((1.0, 0.0), (1.0, 1.0), (0.0, 1.0), (0.0, 0.0)))
+    warmup_m: float = 0.0
 
 
 def sitl_params(output: str, speed_mps: float, sim_drift: bool) -> dict[str, float]:
@@ -110,7 +119,7 @@ def bridge_command(plan: FlightPlan, port: int, summary: Path, track: Path) -> l
     head = [str(exe)] if exe.is_file() else [sys.executable, "-m", "magnav_ins.cli"]
     cmd = [*head, "bridge", "--connect", f"udpin:127.0.0.1:{port}", "--map", "builtin:osborne-magnetic",
            "--output", plan.output, "--rate", "10", "--summary-json", str(summary), "--track-csv", str(track),
-           "--date", "2026-03-20", "--imu-world", "flat"]  # fmt: skip
+           "--date", "2026-03-20", "--imu-world", "flat", "--gnss-lag", f"{SITL_GNSS_LAG_S:g}"]  # fmt: skip
     if plan.grade is not None:
         cmd += ["--grade", plan.grade]
     cmd += ["--gps-id", "1"] if plan.output == "gps_input" else ["--ekf-source-set", "2"]
@@ -199,10 +208,15 @@ def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by st
                 log.info("GNSS denied (SIM_GPS1_ENABLE=0) %.0f s after take-off", t_deny - t_takeoff)
 
         aborted = ""
-        for fn, fe in plan.corners:
+        # GNSS-aided warm-up: a short L and back (east, north, home) so that the filter sees the vehicle tilted
+        # both ways and braking while it still has the GNSS; then the square, the GNSS denied when due
+        warm = plan.warmup_m
+        route = [((0.0, warm), False), ((warm, warm), False), ((0.0, 0.0), False)] if warm > 0 else []
+        route += [((fn * plan.side_m, fe * plan.side_m), True) for fn, fe in plan.corners]
+        for (north_m, east_m), square in route:
             if aborted:
                 break
-            dlat, dlon = meters_to_latlon(fn * plan.side_m, fe * plan.side_m, home_lat, 0.0)
+            dlat, dlon = meters_to_latlon(north_m, east_m, home_lat, 0.0)
             lat, lon = home_lat + float(dlat), home_lon + float(dlon)
             leg_timeout = 1.8 * plan.side_m / plan.speed_mps + 60
 
@@ -221,7 +235,9 @@ def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by st
                     aborted = f"time limit {plan.time_limit_s:.0f} s"
                     break
                 link.goto(lat, lon, plan.altitude_m)
-                gcs.wait(arrived, 2.0, every=deny_when_due)
+                gcs.wait(arrived, 2.0, every=deny_when_due if square else None)
+            if square:
+                deny_when_due()
         if t_deny is None:
             deny_when_due()
             t_deny = t_deny or time.monotonic()
