@@ -209,10 +209,11 @@ def test_shipped_osborne_layer_is_honest_on_the_independent_tie_lines():
 
 
 @pytest.mark.shared_data
-def test_rio_layer_is_honest_on_its_tie_lines(shared_data):
+def test_rio_layer_on_its_tie_lines_is_too_small_a_known_limit(shared_data):
     """A survey not tuned on: Rio's map from its flight lines (LINE), its tie lines (TIE) as truth. With the
     inflation calibrated on Osborne's local part (1.40) Rio's layer is too small: the RMS of (map - reading) / sigma
-    is about 1.4 (measured 1.43; a known limit, README: the inflation is survey-specific)."""
+    is about 1.4 (measured 1.43), not the 1 of an honest layer. A known limit (README: the inflation is
+    survey-specific), pinned from both sides so that a change of it, either way, is seen."""
     from magnav_ins.maps.io import read_survey, select_lines
 
     s = read_survey(
@@ -223,7 +224,7 @@ def test_rio_layer_is_honest_on_its_tie_lines(shared_data):
     t = s.of_type("TIE")
     z = (m.value(t.lat, t.lon) - t.value) / m.error_sigma_at(t.lat, t.lon)
     ok = np.isfinite(z)
-    assert 0.7 < np.sqrt(np.mean(z[ok] ** 2)) < 1.6
+    assert 1.2 < np.sqrt(np.mean(z[ok] ** 2)) < 1.6
 
 
 def test_crossover_level_of_tie_lines_offset_from_the_flight_lines(truth):

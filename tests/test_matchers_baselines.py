@@ -53,9 +53,9 @@ def _batch_trial(m, fmap, rng, offset=None, rot=0.0, nan=False):
     return m.match(w, fmap), true_ne[-1], ins[-1] + off
 
 
-def _pmf_trial(m, fmap, rng, offset=None, nan=False):
+def _pmf_trial(m, fmap, rng, offset=None, nan=False, prior_sigma=PS):
     true_ne, v = _track(rng)
-    P = np.eye(2) * PS**2
+    P = np.eye(2) * prior_sigma**2
     off = rng.multivariate_normal([0, 0], P) if offset is None else np.asarray(offset, float)
     st = None
     for k in range(T):
@@ -287,19 +287,9 @@ def test_pmf_grid_resolves_the_map_under_a_wide_gate():
     rng = np.random.default_rng(4)
     errs, nees = [], []
     for _ in range(12):
-        true_ne, v = _track(rng)
-        P = np.eye(2) * 700.0**2
-        off = rng.multivariate_normal([0, 0], P)
-        st = None
-        for k in range(T):
-            est = nav_estimate(fmap, k * DT, true_ne[k] + off, v, P)
-            st = m.initiate(est) if st is None else m.predict(st, est)
-            lat, lon = latlon(fmap, true_ne[k, 0], true_ne[k, 1])
-            z = fmap.value(lat, lon) + rng.normal(0.0, SIG, 1)
-            st = m.update(st, FieldReadings(np.array([k * DT]), z, SIG, KIND_G), fmap)
-        fix = m.to_fix(st)
+        fix, truth, _ = _pmf_trial(m, fmap, rng, prior_sigma=700.0)
         assert fix.available, fix.reason
-        d = local(fmap, fix.lat, fix.lon) - true_ne[-1]
+        d = local(fmap, fix.lat, fix.lon) - truth
         errs.append(float(np.hypot(*d)))
         nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
     assert np.median(errs) < 12.0, np.round(errs)

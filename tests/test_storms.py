@@ -264,11 +264,9 @@ def test_storms_turn_study_two_runs(tmp_path):
     assert doc["free_inertial"]["rms_horizontal_m"] > 10.0
 
 
-def test_cover_rivals_of_the_likelihood_widens_r_by_the_hidden_peak():
-    """Two equal likelihood peaks 0.8 m apart along north (a scalar field with two identical wells), the filter's
-    prior narrow (0.1 m) on the first: the posterior shows one peak (the prior suppresses the other by e^-32), so
-    the posterior-rival guard sees nothing; the likelihood rivals add w d d^T with w = 1/2, d = 0.8 m north: R_NN
-    grows by 0.32 m^2, R_EE not at all."""
+def _two_wells():
+    """A scalar field with two identical round wells (width 0.15 m) 0.8 m apart along north on a 0.05 m grid, a
+    narrow prior (0.1 m) on the first, one noise-free reading (10 nT sigma) at the first well's bottom."""
     ax = np.arange(-2.0, 2.0001, 0.05)
     n, e = np.meshgrid(ax, ax, indexing="ij")
     well = lambda n0: np.exp(-((n - n0) ** 2 + e**2) / (2 * 0.15**2))  # noqa: E731
@@ -276,6 +274,15 @@ def test_cover_rivals_of_the_likelihood_widens_r_by_the_hidden_peak():
                    altitude_m=0.0, origin=ORIGIN)  # fmt: skip
     prior = nav_estimate(fmap, 0.0, np.array([0.0, 0.0]), np.zeros(2), np.eye(2) * 0.01)
     rd = FieldReadings(np.array([0.0]), np.array([0.0]), 10.0, "total_field_anomaly_nt")
+    return fmap, prior, rd
+
+
+def test_cover_rivals_of_the_likelihood_widens_r_by_the_hidden_peak():
+    """Two equal likelihood peaks 0.8 m apart along north (a scalar field with two identical wells), the filter's
+    prior narrow (0.1 m) on the first: the posterior shows one peak (the prior suppresses the other by e^-32), so
+    the posterior-rival guard sees nothing; the likelihood rivals add w d d^T with w = 1/2, d = 0.8 m north: R_NN
+    grows by 0.32 m^2, R_EE not at all."""
+    fmap, prior, rd = _two_wells()
     fixes = {}
     for cover in (False, True):
         m = BayesGridMatcher(guards=False, map_sigma=0.0, cover_rivals=cover, rivals_of="likelihood", quantisation=0.0)
@@ -333,13 +340,7 @@ def test_lobe_lines_count_a_known_rival_once_window_lines_count_it_twice():
     well: its pdf has two equal lobes, mean 0.4 m, so sigma_N is about 0.4 m (not the single well's width) and the
     rival term comes on top: counted twice. With ``line_extent = "lobe"`` the lines stop at the first minimum, so
     north and east spreads are the single well's (equal: the well is round) and R_NN - R_EE is the rival's 0.32."""
-    ax = np.arange(-2.0, 2.0001, 0.05)
-    n, e = np.meshgrid(ax, ax, indexing="ij")
-    well = lambda n0: np.exp(-((n - n0) ** 2 + e**2) / (2 * 0.15**2))  # noqa: E731
-    fmap = GridMap(ax, ax, 100.0 * (1.0 - well(0.0) - well(0.8)), kind="total_field_anomaly_nt", frame="local",
-                   altitude_m=0.0, origin=ORIGIN)  # fmt: skip
-    prior = nav_estimate(fmap, 0.0, np.array([0.0, 0.0]), np.zeros(2), np.eye(2) * 0.01)
-    rd = FieldReadings(np.array([0.0]), np.array([0.0]), 10.0, "total_field_anomaly_nt")
+    fmap, prior, rd = _two_wells()
     R = {}
     for extent in ("window", "lobe"):
         for cover in (False, True):
