@@ -106,7 +106,14 @@ from ...core.types import Fix
 from ...maps.variability import feature_variability_track
 from ._batch import adds_information, information_refusal, reading_variance
 from ._local import WorkFrame, make_frame, map_components, sigma_window, spacing_of, window_axes
-from .map_error import resolve_level, resolve_map_error, section_covariance, whitened_misfit
+from .likelihood import ins_drift_rate
+from .map_error import (
+    resolve_level,
+    resolve_map_error,
+    section_covariance,
+    temperature_and_topup,
+    whitened_misfit,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -388,7 +395,7 @@ class PMHTResult:
     sigma2: float
     profile_chi2: float
     fisher: FloatArray
-    ambiguity: tuple[FloatArray, FloatArray, FloatArray] | None = None
+    ambiguity: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
     cov_prior: FloatArray | None = None
     level: FloatArray | None = None
 
@@ -436,11 +443,13 @@ class PMHTMatcher:
     ambiguity_floor: bool = True
     ambiguity_grid: int = 41
     ambiguity_mass: float = 0.9
-    ambiguity_deprior: bool = False
+    ambiguity_deprior: bool = True
     adaptive_drift: bool = True
     max_scan_nodes: int = 4096
     level_sigma: float | None = None
     full_covariance: bool = False
+    em_start: str = "likelihood"
+    temper: bool = True
     preset: str = ""
     name: str = "pmht"
 
@@ -479,6 +488,8 @@ class PMHTMatcher:
             raise ConfigError(f"pmht 'preset': expected one of {sorted(self.PRESETS)}, got {self.preset!r}")
         if self.variability_window_m is not None and not self.variability_window_m > 0:
             raise ConfigError(f"pmht 'variability_window_m': expected > 0 m, got {self.variability_window_m!r}")
+        if self.em_start not in ("ins", "likelihood"):
+            raise ConfigError(f"pmht 'em_start': expected 'ins' or 'likelihood', got {self.em_start!r}")
         if self.mode not in ("standard", "retrodiction"):
             raise ConfigError(f"pmht 'mode': expected 'standard' or 'retrodiction', got {self.mode!r}")
         for key in ("gate_sigma", "accel_sigma", "ins_drift_sigma", "velocity_sigma", "max_nis"):
@@ -644,6 +655,18 @@ class PMHTMatcher:
             Q = np.eye(2)[None] * q[:, None, None]
             u = np.diff(x_ins, axis=0)
             X0 = x_ins.copy()
+        g_ok = np.isfinite(dist)
+        g2 = np.sum(np.where(g_ok, grad2, 0.0), axis=1) / np.maximum(np.sum(g_ok, axis=1), 1)
+        amb = (
+            self._ambiguity(
+                frame, z + base, good, x_ins, half, g2, s2, rel_drift, lv,
+                (fmap, float(rd.sigma), step, tt - tt[-1], ins_drift_rate(tt, cov)) if self.temper else None,
+            )  # fmt: skip
+            if self.ambiguity_floor
+            else None
+        )
+        if amb is not None and self.em_start == "likelihood":  # start the EM at the batch's best rigid offset
+            X0[:, :2] = X0[:, :2] + amb[0][int(np.argmax(amb[1]))]
         P0 = np.zeros((d, d))
         if self.use_prior:
             P0[:2, :2] = cov[0]
@@ -674,8 +697,6 @@ class PMHTMatcher:
         # profile check: the readings against the map along the estimated track (value residual normalised by
         # the noise, the node error and the position uncertainty through the local gradient)
         m_est = frame.sample(X[:, 0], X[:, 1]).reshape(T, -1)
-        g_ok = np.isfinite(dist)
-        g2 = np.sum(np.where(g_ok, grad2, 0.0), axis=1) / np.maximum(np.sum(g_ok, axis=1), 1)
         pos_var = 0.5 * (P[:, 0, 0] + P[:, 1, 1])
         var_t = s2 + g2 * (pos_var + (0.5 * step) ** 2)
         resid = z - m_est
@@ -705,11 +726,6 @@ class PMHTMatcher:
             if lv > 0 and len(G):  # the level projected out: (sum G G' - (sum G)(sum G)' / (T + s2 / lv)) / s2
                 gs = G.sum(axis=0)  # (c, 2)
                 J = J - np.einsum("ci,cj->ij", gs, gs) / (s2 * (len(G) + s2 / lv))
-        amb = (
-            self._ambiguity(frame, z + base, good, x_ins, half, X, g2, s2, rel_drift, lv)
-            if self.ambiguity_floor
-            else None
-        )
         return PMHTResult(
             X, P, zbar, Rbar, counts, int(its), variability, nis, frame, tt, x_ins, half, s2, profile, J, amb, cov,
             level,
@@ -756,12 +772,12 @@ class PMHTMatcher:
         good: NDArray[np.bool_],
         x_ins: FloatArray,
         half: FloatArray,
-        X: FloatArray,
         g2: FloatArray,
         s2: float,
         rel_drift: FloatArray,
         lv: float = 0.0,
-    ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        honesty: tuple[FieldMap, float, float, FloatArray, FloatArray] | None = None,
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
         """Batch likelihood of a rigid offset of the INS track over the gate: offsets ``(K, 2)`` m, normalised
         weights ``(K,)`` and the grid spacing ``(D_n, D_e)`` m (``None`` where no offset has a finite likelihood).
 
@@ -797,9 +813,81 @@ class PMHTMatcher:
             ll = ll + 0.5 * np.where(np.isfinite(gain), gain, 0.0)
         if not np.any(np.isfinite(ll)):
             return None
+        topup = np.zeros((2, 2))
+        if honesty is not None:  # temper the surface as ML does (module docstring, "Fix covariance")
+            kb = int(np.nanargmax(np.where(np.isfinite(ll), ll, -np.inf)))
+            temp, topup = self._temperature(
+                frame, z, good, x_ins + np.array([ON[kb], OE[kb]]), g2, s2, cell2, rel_drift, lv, *honesty
+            )
+            ll = ll / temp
         p = np.exp(ll - np.max(ll))
         keep = p > 1e-12 * p.sum()
-        return np.column_stack([ON[keep], OE[keep]]), p[keep] / p[keep].sum(), np.array([dn, de])
+        return np.column_stack([ON[keep], OE[keep]]), p[keep] / p[keep].sum(), np.array([dn, de]), topup
+
+    def _temperature(
+        self,
+        frame: WorkFrame,
+        z: FloatArray,
+        good: NDArray[np.bool_],
+        y: FloatArray,
+        g2: FloatArray,
+        s2: float,
+        cell2: float,
+        rel_drift: FloatArray,
+        lv: float,
+        fmap: FieldMap,
+        sensor_sigma: float,
+        step: float,
+        tau: FloatArray,
+        drift_mps: FloatArray,
+    ) -> tuple[float, FloatArray]:
+        """``(temperature, top-up (2, 2) m^2)`` of the rigid-offset likelihood of :meth:`_ambiguity`, evaluated on
+        the track ``y`` (T, 2) frame m at its best offset: ML's honesty (:meth:`.likelihood.LikelihoodMatcher.honesty`)
+        for PMHT's batch. The likelihood assumed the residuals independent with variances ``v_t = s^2 + |grad m|_t^2
+        (cell^2 / 12 + r_t^2)`` plus the level, ``A = diag(v) + sigma_b^2 1 1'``; their covariance is ``Sigma =
+        sigma_s^2 I + D C D + diag(|grad m|^2 cell^2 / 12) + sigma_b^2 1 1' + W`` (the map error's correlation
+        ``C``, :func:`~.map_error.section_covariance`, and the INS's deformation within the batch as the random walk
+        of the EM's kinematics: scans ``t``, ``s`` share ``min(r_t^2, r_s^2)`` per axis, ``W_ts = G_t . G_s
+        min(r_t^2, r_s^2)``). The temperature is the sandwich's (:func:`~.map_error.temperature_and_topup`, in the
+        basis that whitens ``A``) times the residuals' misfit chi-square per degree of freedom under ``Sigma`` when
+        that exceeds its 99 % quantile; the top-up is scaled by the same misfit factor."""
+        idx = np.flatnonzero(good)
+        yy = y[idx]
+        k = idx.size
+        if k < 3:
+            return 1.0, np.zeros((2, 2))
+        h = max(0.5 * float(step), 0.5)
+        c = z.shape[1]
+        m0 = np.asarray(frame.sample(yy[:, 0], yy[:, 1]), float).reshape(k, c)
+        jac = np.empty((k, c, 2))
+        jac[:, :, 0] = (frame.sample(yy[:, 0] + h, yy[:, 1]) - frame.sample(yy[:, 0] - h, yy[:, 1])).reshape(k, c)
+        jac[:, :, 1] = (frame.sample(yy[:, 0], yy[:, 1] + h) - frame.sample(yy[:, 0], yy[:, 1] - h)).reshape(k, c)
+        jac = np.nan_to_num(jac / (2 * h), nan=0.0, posinf=0.0, neginf=0.0)
+        resid = z[idx] - m0
+        if not np.all(np.isfinite(resid)):
+            return 1.0, np.zeros((2, 2))
+        err = resolve_map_error(fmap, self.map_sigma, self.correlation_m)
+        la, lo = frame.to_latlon(yy[:, 0], yy[:, 1])
+        sm = np.asarray(err.sigma_at(la, lo), float)
+        sm = np.where(np.isfinite(sm), sm, 0.0)
+        sigma = section_covariance(yy[:, 0], yy[:, 1], sm, sensor_sigma, err.correlation_m)
+        sigma[np.diag_indices(k)] += g2[idx] * cell2
+        sigma += lv
+        r2 = rel_drift[idx] ** 2
+        for a in range(2):  # the INS's deformation within the batch: delta p_t = dv (t - t_T), rank one per axis
+            g = jac[:, :, a].sum(axis=1) * tau[idx] * float(drift_mps[a])
+            sigma += np.outer(g, g)
+        assumed = np.diag(s2 + g2[idx] * (cell2 + r2)) + lv
+        try:
+            tr = np.linalg.inv(np.linalg.cholesky(assumed))  # T' T = A^-1
+        except np.linalg.LinAlgError:
+            return 1.0, np.zeros((2, 2))
+        temp, topup = temperature_and_topup(jac, sigma, 1.0, tr)
+        chi2, dof = whitened_misfit(resid, sigma)
+        phi = 1.0
+        if dof > 0 and np.isfinite(chi2) and chi2 > float(2.0 * gammaincinv(dof / 2.0, MISFIT_PROBABILITY)):
+            phi = chi2 / dof
+        return float(temp * phi), topup * phi
 
     def _ambiguity_cov(self, res: PMHTResult, k: int) -> tuple[FloatArray, float] | None:
         """``(C, near)`` from the rigid-offset likelihood of :meth:`_ambiguity` at scan ``k``: ``C`` (2, 2) m^2 the
@@ -814,11 +902,11 @@ class PMHTMatcher:
         likelihood is unambiguous at the grid's resolution)."""
         if res.ambiguity is None:
             return None
-        off, p, D = res.ambiguity
+        off, p, D, topup = res.ambiguity
         hn, he = float(res.half[-1, 0]), float(res.half[-1, 1])
         a = res.x_ins[k] + off - res.X[k, :2]
         near = float(np.sum(p[np.all(np.abs(a) <= 1.5 * D, axis=1)]))
-        C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag(D**2) / 12.0
+        C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag(D**2) / 12.0 + topup
         if not self.ambiguity_deprior:
             return C, near
         big = (10.0 * max(hn, he)) ** 2
@@ -858,7 +946,9 @@ class PMHTMatcher:
         cov = (V * ev) @ V.T
         if self.variability_ref > 0:  # eq. 14 weighting: inflate where C / s^2 is below the reference
             cov = cov * max(1.0, self.variability_ref / max(res.variability / res.sigma2, 1e-300))
-        gate = res.half[-1]  # the ambiguity term is the offset likelihood over this gate: its own information out
+        # the ambiguity term is the offset likelihood over this gate: its own information out (already out of the
+        # covariance with ambiguity_deprior: every term is then the readings' own)
+        gate = None if self.ambiguity_deprior else res.half[-1]
         if check_information and res.cov_prior is not None and not adds_information(cov, res.cov_prior[k], gate):
             return information_refusal(t, cov, res.cov_prior[k], self.name, res.nis, gate)
         sig = float(np.sqrt(ev[-1]))
