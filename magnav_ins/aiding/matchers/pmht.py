@@ -70,11 +70,35 @@ pair: no double counting), never by a sum:
   (Osborne navigation NEES 8.2 against 6.0, Rio 48 against 21): the count of ``s^2`` above, one map error per
   correlation length, is the more cautious of the two, and neither covers PMHT's real-data bias;
 * ``ambiguity_floor``: the spread of the batch likelihood of a rigid offset of the INS track over the whole gate
-  (``ambiguity_grid`` offsets a side, :meth:`PMHTMatcher._ambiguity`), its second moment about the fix, used only
-  where that likelihood is ambiguous: less than ``ambiguity_mass`` (0.9) of it within 1.5 grid cells of the fix.
-  On the synthetic maps of the contract tests the likelihood is nearly always unambiguous and the term is rarely
-  used (fix NEES 1.98 over the 40 trials); on the 10' gravity grid it always is (0.03-0.1 of the mass near the
-  fix), and it is what covers a wrong mode or a long along-track ridge.
+  (``ambiguity_grid`` offsets a side, :meth:`PMHTMatcher._ambiguity`), used only where that likelihood is
+  ambiguous: less than ``ambiguity_mass`` (0.9) of it within 1.5 grid cells of the fix. On the synthetic maps of
+  the contract tests the likelihood is nearly always unambiguous and the term is rarely used; on the 10' gravity
+  grid and on real magnetic readings it nearly always is (0.0-0.3 of the mass near the fix), and it is what covers a
+  wrong mode or a long along-track ridge. Where it is used, the fix is the readings' own estimate from that
+  likelihood (below), not the EM's mode.
+
+What the readings' batch likelihood contains (issue 13, ``temper``, on by default): the rigid-offset likelihood
+assumes independent residuals of variance ``s^2 + |grad m|^2 (cell^2 / 12 + r_t^2)`` and the marginalised level;
+it is divided by a temperature, as ML's (:mod:`.likelihood`, "What the fix covariance contains"): the sandwich
+factor of the batch's full residual covariance (sensor noise, the map error with its correlation over its
+correlation length, the offset cell, the level ``sigma_b^2 1 1'`` and the INS's deformation within the batch as a
+velocity error, :func:`.likelihood.ins_drift_rate`) against the assumed one, times the residuals' misfit
+chi-square per degree of freedom at the best offset when it exceeds its 99 % quantile; the sandwich's top-up is
+added to its moments (:meth:`PMHTMatcher._temperature`).
+
+De-prior (``ambiguity_deprior`` and ``deprior_location``, on by default since 2026-12). The offset likelihood lives
+on a gate centred on the INS position, so its posterior (flat prior over the gate) holds the gate's information
+too, ``B^-1 = diag(3 / h_n^2, 3 / h_e^2)``, and its mean is pulled towards the INS. Fused by the filter as an
+independent measurement, that share of the INS error came back as evidence, fix after fix: on the real Osborne
+tie lines the issued fixes' errors followed the INS error (cosine 0.9-1.0 along the weakly observed,
+cross-track direction) while their covariance along it was the gate's own width, and the filter's NEES reached
+5-16. The fix is therefore the readings' own estimate: the gate's information is taken out of the covariance,
+``C_r = (C^-1 - B^-1)^-1``, and out of the location, ``x_ins + C_r C^-1 mu`` (``mu`` the posterior mean offset;
+:meth:`PMHTMatcher._deprior_estimate`; directions that carry almost nothing stay put with a wide variance),
+Loewner-maximised with the Cramer-Rao floor. The EM is started at the likelihood's best offset
+(``em_start = "likelihood"``; ``"ins"`` as published): started at the INS it stopped at a local optimum next to it
+(tie line 10152: fixes 400-700 m off where the offset likelihood's mean was 30-100 m off). ``adds_information``
+then compares the fix with the prior without the gate term (the fix no longer holds the gate's information).
 
 Variances are capped at ``(10 max h)^2``; with ``partial_fixes = False`` a fix is also refused when its sigma
 exceeds the gate half-width in any direction (a fix along a straight line over a smooth map fixes the cross-track
@@ -372,6 +396,9 @@ def _loewner_max(A: FloatArray, B: FloatArray, big: float, information: bool = F
 LEVEL_REPASS = 0.25
 #: the readings' misfit along the estimated track scales the Cramer-Rao floor only above this chi-square quantile
 MISFIT_PROBABILITY = 0.99
+#: a direction whose readings add less than this share of the gate-posterior's information is not extrapolated
+#: away from the INS by the de-prior (:meth:`PMHTMatcher._deprior_estimate`): at most 50 x the variance
+DEPRIOR_MIN_RATIO = 0.02
 
 
 @dataclass
@@ -409,8 +436,9 @@ class PMHTMatcher:
     ``map_sigma``; ``min_variability``, ``variability_ref`` (eq. 14 cut-off and weighting); ``max_nis``;
     ``mode`` "standard" | "retrodiction"; ``resolution_m`` scan step for maps without a native local grid
     (coarsened so a scan reads at most ``max_scan_nodes`` map values); ``variance_factor``, ``crlb_floor``,
-    ``ambiguity_floor`` (``ambiguity_grid``, ``ambiguity_mass``, ``ambiguity_deprior``) and ``partial_fixes``: the
-    fix covariance terms of the module docstring."""
+    ``ambiguity_floor`` (``ambiguity_grid``, ``ambiguity_mass``, ``ambiguity_deprior``, ``deprior_location``,
+    ``temper``), ``em_start`` ("likelihood" | "ins") and ``partial_fixes``: the fix covariance terms of the module
+    docstring."""
 
     batch: int = 30
     candidates: int = 20
@@ -449,6 +477,7 @@ class PMHTMatcher:
     level_sigma: float | None = None
     full_covariance: bool = False
     em_start: str = "likelihood"
+    deprior_location: bool = True
     temper: bool = True
     preset: str = ""
     name: str = "pmht"
@@ -657,11 +686,9 @@ class PMHTMatcher:
             X0 = x_ins.copy()
         g_ok = np.isfinite(dist)
         g2 = np.sum(np.where(g_ok, grad2, 0.0), axis=1) / np.maximum(np.sum(g_ok, axis=1), 1)
+        honesty = (fmap, float(rd.sigma), step, tt - tt[-1], ins_drift_rate(tt, cov)) if self.temper else None
         amb = (
-            self._ambiguity(
-                frame, z + base, good, x_ins, half, g2, s2, rel_drift, lv,
-                (fmap, float(rd.sigma), step, tt - tt[-1], ins_drift_rate(tt, cov)) if self.temper else None,
-            )  # fmt: skip
+            self._ambiguity(frame, z + base, good, x_ins, half, g2, s2, rel_drift, lv, honesty)
             if self.ambiguity_floor
             else None
         )
@@ -894,10 +921,11 @@ class PMHTMatcher:
         second moment of the offset posterior (flat prior over the gate) about the smoothed position ``X_k`` (each
         grid point a uniform cell, ``+ D^2/12`` per axis); with ``ambiguity_deprior`` the gate's own information is
         removed, ``C = (C_post^-1 - B^-1)^-1`` with ``B = diag(h_n^2, h_e^2) / 3`` the variance of the flat prior
-        (directions where the likelihood adds less than that get ``(10 max h)^2``). Off by default: on the EIGEN-6C4
-        scenarios (5 runs, T = 15 / 30) it made the fixes more conservative (1 mGal fix NEES 0.4 / 0.8) and the mean
-        errors larger (1 mGal 1303 / 1416 m against 1295 / 1358 m; tactical 30.6 / 34.0 km against 24.9 / 26.6 km);
-        de-priored means (the fix at the likelihood's mean) were far worse (1 mGal fix errors of 35 km). ``near`` is
+        (directions where the likelihood adds less than that get ``(10 max h)^2``); :meth:`_fix` uses
+        :meth:`_deprior_estimate` instead when ``deprior_location`` is on (the default). History: with the
+        covariance de-priored but the fix at the EM's mode (2026-11), on the EIGEN-6C4 scenarios (5 runs, T = 15 /
+        30) the fixes were more conservative (1 mGal fix NEES 0.4 / 0.8) and the mean errors larger (1 mGal 1303 /
+        1416 m against 1295 / 1358 m; tactical 30.6 / 34.0 km against 24.9 / 26.6 km). ``near`` is
         the posterior mass within one and a half cells of ``X_k`` (the 3 x 3 cells about the EM's mode: 1 where the
         likelihood is unambiguous at the grid's resolution)."""
         if res.ambiguity is None:
@@ -913,6 +941,37 @@ class PMHTMatcher:
         info = np.linalg.inv(C) - np.diag([3.0 / hn**2, 3.0 / he**2])
         ev, V = np.linalg.eigh(0.5 * (info + info.T))
         return (V / np.maximum(ev, 1.0 / big)) @ V.T, near
+
+    def _deprior_estimate(self, res: PMHTResult, k: int, big: float) -> tuple[FloatArray, FloatArray] | None:
+        """The readings' own estimate of scan ``k``'s position and its covariance, from the rigid-offset likelihood
+        of :meth:`_ambiguity` with the gate's information taken out of *both* (module docstring, "Fix
+        covariance"): with the posterior mean ``mu`` (offset from the INS) and covariance ``C`` over the gate
+        (flat prior, variance ``B = diag(h_n^2, h_e^2) / 3``), the readings' information is ``C^-1 - B^-1`` and
+        their estimate ``x_ins + (C^-1 - B^-1)^-1 C^-1 mu`` (the Gaussian posterior's algebra run backwards). A
+        posterior mean is pulled towards the gate's centre, the INS, by ``C B^-1``: fused as independent, that
+        share of the INS error came back as if it were evidence. In whitened coordinates (``C = L L'``) each
+        direction whose information ratio ``lambda`` (eigenvalue of ``I - L' B^-1 L``) is below
+        ``DEPRIOR_MIN_RATIO`` is left where it is with variance ``C / DEPRIOR_MIN_RATIO`` (it carries almost
+        nothing). Variances capped at ``big``."""
+        if res.ambiguity is None:
+            return None
+        off, p, D, topup = res.ambiguity
+        mu = p @ off
+        a = off - mu
+        C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag(D**2) / 12.0 + topup
+        try:
+            L = np.linalg.cholesky(0.5 * (C + C.T))
+        except np.linalg.LinAlgError:
+            return None
+        hn, he = float(res.half[-1, 0]), float(res.half[-1, 1])
+        M = np.eye(2) - L.T @ np.diag([3.0 / hn**2, 3.0 / he**2]) @ L
+        lam, W = np.linalg.eigh(0.5 * (M + M.T))
+        g = 1.0 / np.maximum(lam, DEPRIOR_MIN_RATIO)
+        x_w = W @ (g * (W.T @ np.linalg.solve(L, mu)))
+        C_r = L @ ((W * g) @ W.T) @ L.T
+        ev, V = np.linalg.eigh(0.5 * (C_r + C_r.T))
+        C_r = (V * np.minimum(ev, big)) @ V.T
+        return res.x_ins[k] + L @ x_w, C_r
 
     def _fix(self, res: PMHTResult, k: int, check_information: bool = True) -> Fix:
         t = float(res.t[k])
@@ -940,7 +999,12 @@ class PMHTMatcher:
         amb = self._ambiguity_cov(res, k) if self.ambiguity_floor else None
         if amb is not None and amb[1] < self.ambiguity_mass:
             # the batch likelihood is ambiguous within the gate (mass away from the EM's mode): cover its spread
-            cov = _loewner_max(cov, amb[0], big)
+            dep = self._deprior_estimate(res, k, big) if (self.ambiguity_deprior and self.deprior_location) else None
+            if dep is not None:  # the readings' own estimate, not the EM's mode (module docstring)
+                xk, cov_r = dep
+                cov = _loewner_max(cov_r, res.fisher, big, information=True) if self.crlb_floor else cov_r
+            else:
+                cov = _loewner_max(cov, amb[0], big)
         ev, V = np.linalg.eigh(0.5 * (cov + cov.T))
         ev = np.minimum(ev, big)
         cov = (V * ev) @ V.T
@@ -948,7 +1012,7 @@ class PMHTMatcher:
             cov = cov * max(1.0, self.variability_ref / max(res.variability / res.sigma2, 1e-300))
         # the ambiguity term is the offset likelihood over this gate: its own information out (already out of the
         # covariance with ambiguity_deprior: every term is then the readings' own)
-        gate = None if self.ambiguity_deprior else res.half[-1]
+        gate = None if (self.ambiguity_floor and self.ambiguity_deprior) else res.half[-1]
         if check_information and res.cov_prior is not None and not adds_information(cov, res.cov_prior[k], gate):
             return information_refusal(t, cov, res.cov_prior[k], self.name, res.nis, gate)
         sig = float(np.sqrt(ev[-1]))
