@@ -122,13 +122,14 @@ from typing import Any, ClassVar
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 from scipy.special import gammaincinv
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
 from ...maps.variability import feature_variability_track
-from ._batch import adds_information, information_refusal, reading_variance
+from ._batch import RIVAL_PEAK_RATIO, adds_information, information_refusal, reading_variance
 from ._local import WorkFrame, make_frame, map_components, sigma_window, spacing_of, window_axes
 from .likelihood import ins_drift_rate
 from .map_error import (
@@ -422,7 +423,7 @@ class PMHTResult:
     sigma2: float
     profile_chi2: float
     fisher: FloatArray
-    ambiguity: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+    ambiguity: tuple[FloatArray, FloatArray, FloatArray, FloatArray, int] | None = None
     cov_prior: FloatArray | None = None
     level: FloatArray | None = None
 
@@ -804,7 +805,7 @@ class PMHTMatcher:
         rel_drift: FloatArray,
         lv: float = 0.0,
         honesty: tuple[FieldMap, float, float, FloatArray, FloatArray] | None = None,
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None:
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, int] | None:
         """Batch likelihood of a rigid offset of the INS track over the gate: offsets ``(K, 2)`` m, normalised
         weights ``(K,)`` and the grid spacing ``(D_n, D_e)`` m (``None`` where no offset has a finite likelihood).
 
@@ -848,8 +849,11 @@ class PMHTMatcher:
             )
             ll = ll / temp
         p = np.exp(ll - np.max(ll))
+        grid = np.where(np.isfinite(p), p, 0.0).reshape(m, m)
+        peaks = (grid == ndimage.maximum_filter(grid, size=3, mode="constant", cval=0.0)) & (grid >= RIVAL_PEAK_RATIO)
         keep = p > 1e-12 * p.sum()
-        return np.column_stack([ON[keep], OE[keep]]), p[keep] / p[keep].sum(), np.array([dn, de]), topup
+        out = np.column_stack([ON[keep], OE[keep]]), p[keep] / p[keep].sum(), np.array([dn, de]), topup
+        return (*out, int(peaks.sum()))
 
     def _temperature(
         self,
@@ -930,7 +934,7 @@ class PMHTMatcher:
         likelihood is unambiguous at the grid's resolution)."""
         if res.ambiguity is None:
             return None
-        off, p, D, topup = res.ambiguity
+        off, p, D, topup, _ = res.ambiguity
         hn, he = float(res.half[-1, 0]), float(res.half[-1, 1])
         a = res.x_ins[k] + off - res.X[k, :2]
         near = float(np.sum(p[np.all(np.abs(a) <= 1.5 * D, axis=1)]))
@@ -953,9 +957,9 @@ class PMHTMatcher:
         direction whose information ratio ``lambda`` (eigenvalue of ``I - L' B^-1 L``) is below
         ``DEPRIOR_MIN_RATIO`` is left where it is with variance ``C / DEPRIOR_MIN_RATIO`` (it carries almost
         nothing). Variances capped at ``big``."""
-        if res.ambiguity is None:
-            return None
-        off, p, D, topup = res.ambiguity
+        if res.ambiguity is None or res.ambiguity[4] != 1:
+            return None  # no likelihood, or several modes: the Gaussian algebra does not hold
+        off, p, D, topup, _ = res.ambiguity
         mu = p @ off
         a = off - mu
         C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag(D**2) / 12.0 + topup
