@@ -367,18 +367,21 @@ def test_pmht_ambiguity_term_covers_a_wrong_mode_on_a_periodic_map():
 
 def test_pmht_ambiguity_term_unused_where_the_likelihood_is_unambiguous():
     """On the rough synthetic gravity map the batch likelihood is concentrated about the EM's mode (more than 90 %
-    within 1.5 offset cells): the fix covariance is the local one (to the EM's tolerance: without the ambiguity
-    term the EM starts at the INS, not at the likelihood's best offset)."""
+    within 1.5 offset cells): with ``ambiguity_mass = 0.9`` (the rule until 2026-12) the fix covariance is the local
+    one (to the EM's tolerance: without the ambiguity term the EM starts at the INS, not at the likelihood's best
+    offset). The default (1.0) uses the term wherever it exists, and the fix is still close to the truth."""
     rng = np.random.default_rng(31)
     fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
     fmap = fmap.with_error_layer(0.0, correlation_m=10.0)  # readings drawn from this map: no map error
     w, _ = _pmht_window(fmap, rng)
-    m = PMHTMatcher()
+    m = PMHTMatcher(ambiguity_mass=0.9)
     res = m.run(w, fmap)
     assert m._ambiguity_cov(res, len(res.t) - 1)[1] > m.ambiguity_mass
     a, b = m.match(w, fmap), PMHTMatcher(ambiguity_floor=False).match(w, fmap)
     assert a.available and b.available
     assert np.allclose(a.cov_ne, b.cov_ne, rtol=1e-3)
+    c = PMHTMatcher().match(w, fmap)
+    assert c.available and np.hypot(*(local(fmap, c.lat, c.lon) - local(fmap, a.lat, a.lon))) < 10.0
 
 
 def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
@@ -389,9 +392,8 @@ def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
     relative to the last scan. Measured (seed 31, 20 trials): 19 / 20 fixes, fix NEES mean 11.9 (median 6.0)
     against 15 / 20 and 827 (median 721) for the rigid batch. Still above 2: a velocity error is a deterministic
     ramp, which a random walk of the same end sigma does not cover. Since the offset likelihood is tempered for the
-    INS's deformation as a velocity error (``temper``, issue 13) both are honest (20 / 20 fixes, NEES 1.44 and 1.41)
-    and the adaptive batch is the more accurate (median error 81 m against 141 m); without the temper, as before
-    (7.6 against 226)."""
+    INS's deformation as a velocity error (``temper``, issue 13) both are honest (NEES 1.21 and 1.28) and the
+    adaptive batch is the more accurate; without the temper 7.6 against 92."""
     rng = np.random.default_rng(31)
     fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
     fmap.metadata["level_sigma"] = 0.0  # readings drawn from this map: no level offset
@@ -416,7 +418,7 @@ def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
     assert len(nees[True, True]) >= 16 and len(nees[False, True]) >= 16, {k: len(x) for k, x in nees.items()}
     mean = {k: float(np.mean(x)) for k, x in nees.items()}
     assert mean[True, True] < 3.0 and mean[False, True] < 3.0, mean
-    assert mean[True, False] < 20.0 and mean[False, False] > 100.0, mean
+    assert mean[True, False] < 20.0 and mean[False, False] > 40.0, mean
     assert np.median(err[True, True]) < np.median(err[False, True]), err
 
 
