@@ -9,7 +9,10 @@ Groups (a *case* is one survey line flown at one speed with one IMU grade):
 * ``rio``: the long east-west tie lines (``TIE``, the stubs under 20 km at the survey's edge left out) of the 1978
   Rio de Janeiro survey (``../shared/data/rio_magnetic/rio-magnetic.csv.xz``, CC-BY-NC-4.0: studies only, never
   shipped) against a grid of its 128 north-south flight lines (``LINE``) only, read through the survey column
-  mapping, at the same speeds, tactical IMU. Skipped, with the reason, when the file is not there.
+  mapping, at the same speeds, tactical IMU. The survey's other tie lines, not the one flown, measure the map's
+  error between line sets at their crossovers (the map's error layer, :mod:`magnav_ins.maps.error_layer`
+  "Crossovers"; never gridded): the line flown is used for nothing in the map. Skipped, with the reason, when the
+  file is not there.
 
 Estimators (:data:`ESTIMATORS`, the same for every case, nothing tuned per case): ``ml+ukf``, ``pmht+ukf``,
 ``particle_ins+ukf``, ``ml+graph``; ``bayes_grid+ukf`` needs a vector map and both surveys are scalar total field.
@@ -125,7 +128,8 @@ class Case:
             "trajectory": {"kind": "survey_line", "survey": self.survey, "line": self.line,
                            "speed_mps": self.speed_mps, **dict(self.trajectory_keys)},
             "imu": {"grade": self.grade, "rate_hz": IMU_RATE_HZ},
-            "map": {"path": self.map_path, "kind": "total_field_anomaly_nt", **dict(self.map_keys)},
+            "map": {"path": self.map_path, "kind": "total_field_anomaly_nt",
+                    **{k: list(v) if isinstance(v, tuple) else v for k, v in self.map_keys}},
             "sensor": {"kind": "scalar_magnetometer", "source": "survey", "sigma": READING_NOISE_NT,
                        "interval_s": self.reading_interval_s},
             "estimator": [dict(e) for e in estimators],
@@ -170,10 +174,11 @@ def rio_cases(survey: Path, quick: bool) -> tuple[list[Case], str]:
     speeds = QUICK_SPEEDS_MPS if quick else SPEEDS_MPS
     path = str(survey.resolve())
     return [
-        Case("rio", path, path, ln, v, "tactical", RIO_READING_INTERVAL_S, map_keys, traj_keys)
+        Case("rio", path, path, ln, v, "tactical", RIO_READING_INTERVAL_S, (*map_keys, ("exclude_lines", (ln,))),
+             traj_keys)
         for ln in lines
         for v in speeds
-    ], ""
+    ], ""  # fmt: skip
 
 
 @dataclass(frozen=True)
