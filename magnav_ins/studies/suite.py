@@ -96,6 +96,7 @@ KEYS = (
     "hpl_median_m",
     "availability",
     "divergence_rate",
+    "nees_divergence_rate",
 )
 
 
@@ -285,18 +286,18 @@ def _fmt(x: Any, pct: bool = False) -> str:
 
 TABLE_HEADER = (
     f"{'case':28s} {'estimator':17s} {'RMS':>8s} {'max':>8s} {'NEES':>7s} {'fixNEES':>8s} {'HPLexc':>7s} "
-    f"{'avail':>6s} {'div':>6s} {'free':>8s}"
+    f"{'avail':>6s} {'div':>6s} {'divNEES':>7s} {'free':>8s}"
 )
 
 
 def table_rows(name: str, figures: dict[str, dict[str, Any]]) -> list[str]:
-    """Text rows of one case or group: RMS, max, NEES, fix NEES, HPL exceedance, availability, divergence, free
-    RMS per estimator."""
+    """Text rows of one case or group: RMS, max, NEES, fix NEES, HPL exceedance, availability, divergence (Wang's
+    error-growth test and the filter's NEES test, :mod:`.metrics`), free RMS per estimator."""
     return [
         f"{name:28s} {est:17s} {_fmt(m['rms_horizontal_m']):>8s} {_fmt(m['max_horizontal_m']):>8s} "
         f"{_fmt(m['nees_mean']):>7s} {_fmt(m['fix_nees_mean']):>8s} {_fmt(m['hpl_exceedance'], True):>7s} "
         f"{_fmt(m['availability'], True):>6s} {_fmt(m['divergence_rate'], True):>6s} "
-        f"{_fmt(m['free_rms_horizontal_m']):>8s}"
+        f"{_fmt(m['nees_divergence_rate'], True):>7s} {_fmt(m['free_rms_horizontal_m']):>8s}"
         for est, m in figures.items()
     ]
 
