@@ -42,6 +42,7 @@ from .error_layer import (
     DEFAULT_FOLDS,
     ERROR_INFLATION,
     ErrorModel,
+    correlation_length,
     cross_validate,
     fit_between_lines,
     nearest_distance,
@@ -270,7 +271,7 @@ def grid_survey(
         name=name or (survey.source and survey.source.split("/")[-1]) or "survey",
         metadata=meta,
         error_sigma=err,
-        error_correlation_m=None if err_model is None else err_model.correlation_m,
+        error_correlation_m=None if err_model is None else err_model.stated_correlation_m,
         error_source="" if err_model is None else err_model.describe(),
     )
 
@@ -392,23 +393,55 @@ def _between_lines(
 ) -> ErrorModel:
     """``model`` with the between-line-set term (:func:`magnav_ins.maps.error_layer.fit_between_lines`) fitted at
     the crossovers: the ``crossing`` readings within half a node spacing (at least 5 m) of a gridded reading
-    (``coords``, local m); ``model`` unchanged when they give none. The term replaces the inflation."""
+    (``coords``, local m), and the correlation length of the misfit along those lines
+    (:func:`_misfit_correlation`); ``model`` unchanged when they give no term. The term replaces the inflation."""
     cn, ce, cv, cl = crossing
     d = nearest_distance(coords, np.c_[cn, ce])
+    qn, qe = np.ascontiguousarray(cn), np.ascontiguousarray(ce)
+    res = bilinear_scalar(np.ascontiguousarray(vals), north0, spacing_m, east0, spacing_m, qn, qe, 0.0) - cv
+    g = bilinear_scalar(np.ascontiguousarray(grad), north0, spacing_m, east0, spacing_m, qn, qe, 0.0)
     m = d <= max(0.5 * spacing_m, 5.0)
     if not m.any():
         return model
-    qn, qe = np.ascontiguousarray(cn[m]), np.ascontiguousarray(ce[m])
-    pred = bilinear_scalar(np.ascontiguousarray(vals), north0, spacing_m, east0, spacing_m, qn, qe, 0.0)
-    g = bilinear_scalar(np.ascontiguousarray(grad), north0, spacing_m, east0, spacing_m, qn, qe, 0.0)
-    cv_var = replace(model, inflation=1.0).sigma_at(d[m], g) ** 2
-    fit = fit_between_lines(pred - cv[m], cl[m], cv_var, g)
+    cv_var = replace(model, inflation=1.0).sigma_at(d[m], g[m]) ** 2
+    fit = fit_between_lines(res[m], cl[m], cv_var, g[m])
     if fit is None:
         return model
     c, p, lines, points = fit
     return replace(
-        model, inflation=1.0, between_var=c, between_position_m=p, between_lines=lines, between_points=points
+        model,
+        inflation=1.0,
+        between_var=c,
+        between_position_m=p,
+        between_lines=lines,
+        between_points=points,
+        between_correlation_m=_misfit_correlation(np.c_[cn, ce], res, cl, spacing_m, model.block_m),
     )
+
+
+def _misfit_correlation(
+    coords: FloatArray, residual: FloatArray, line: NDArray[np.int64], spacing_m: float, block_m: float
+) -> float:
+    """Correlation length (m) of the misfit ``residual`` (map - reading; each line's median removed) of the lines not
+    gridded along those lines (:func:`magnav_ins.maps.error_layer.correlation_length`, pairs within a line, cells
+    of ``spacing_m``): the map error as a line crossing the gridded ones sees it; NaN when it cannot be measured."""
+    ok = np.isfinite(residual)
+    coords, r, ln = coords[ok], residual[ok], np.asarray(line)[ok]
+    if r.size < 10:
+        return float("nan")
+    rd = np.empty_like(r)
+    for lid in np.unique(ln):
+        k = ln == lid
+        rd[k] = r[k] - np.median(r[k])
+    scale = float(np.sqrt(np.mean(rd**2)))
+    if not scale > 0:
+        return float("nan")
+    _, fold = np.unique(ln, return_inverse=True)
+    length, lags, _ = correlation_length(
+        coords, rd / scale, fold.astype(np.int64), spacing_m, max(20.0 * block_m, 40.0 * spacing_m),
+        np.random.default_rng(0), monotone=True,
+    )  # fmt: skip
+    return float(length) if lags.size else float("nan")
 
 
 def gradient_magnitude(values: FloatArray, spacing_m: float) -> FloatArray:

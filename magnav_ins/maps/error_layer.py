@@ -37,7 +37,11 @@ cross-validated error is small, so the tie reading's misfit (map - reading, less
 level, above) is the between-line-set error. Its variance beyond the cross-validated one is fitted, as the
 cross-validation's, as ``c + p^2 |grad m|^2`` (non-negative least squares over all crossovers,
 :func:`fit_between_lines`: ``sqrt(c)`` a map-unit floor, ``p`` a registration error in m) and added in quadrature
-everywhere on the map (:class:`ErrorModel`). The lines used are the survey's cross lines that the gridder leaves
+everywhere on the map (:class:`ErrorModel`). The map's correlation length is then measured as the
+cross-validation's (step 5) on the misfit (each line's median removed) along those lines, everywhere on them: the
+map's error as a line flown across the gridded ones sees it, both parts together (it decides how many independent
+pieces of evidence a section of readings holds; a levelling error correlated over kilometres, as on Rio's tie line
+9160, is not the cross-validation's few hundred metres). The lines used are the survey's cross lines that the gridder leaves
 out, or lines given only for this (``grid_survey(check_lines=...)``; a survey gridded with ``line_type = "LINE"``
 gives its other lines): they never enter the grid. Without crossing lines the cross-validated sigma is multiplied
 by :data:`ERROR_INFLATION` instead, a constant calibrated on one survey. ``bench/maps.py --only error_layer`` and
@@ -108,6 +112,16 @@ class ErrorModel:
     between_position_m: float = 0.0
     between_lines: int = 0
     between_points: int = 0
+    #: the correlation length (m) of the misfit along the lines that measured the between-line-set term (NaN =
+    #: none): the map's error as a line crossing the gridded ones sees it, cross-validation and between-line-set
+    #: parts together; the map states it in place of the cross-validation's ``correlation_m``
+    between_correlation_m: float = float("nan")
+
+    @property
+    def stated_correlation_m(self) -> float:
+        """The correlation length the map carries (m): :attr:`between_correlation_m` when measured, else the
+        cross-validation's."""
+        return self.between_correlation_m if np.isfinite(self.between_correlation_m) else self.correlation_m
 
     def _coef(self, d: FloatArray) -> tuple[FloatArray, FloatArray]:
         x = self.distance_m
@@ -140,7 +154,9 @@ class ErrorModel:
             + (
                 f"plus, in quadrature, the between-line-set error at {self.between_points} crossovers of "
                 f"{self.between_lines} lines not gridded: {np.sqrt(self.between_var):.3g} and "
-                f"{self.between_position_m:.3g} m x |grad|"
+                f"{self.between_position_m:.3g} m x |grad|; the misfit along those lines is correlated over "
+                f"{self.between_correlation_m:.0f} m (the map's correlation length; cross-validation: "
+                f"{self.correlation_m:.0f} m)"
                 if self.between_lines
                 else f"times {self.inflation:g} for what one line set cannot see (no crossing lines to measure it)"
             )
@@ -165,7 +181,11 @@ class ErrorModel:
                 "position_m": round(self.between_position_m, 3),
                 "lines": self.between_lines,
                 "points": self.between_points,
+                "correlation_m": None
+                if not np.isfinite(self.between_correlation_m)
+                else round(self.between_correlation_m, 3),
             },
+            "stated_correlation_m": round(self.stated_correlation_m, 3),
             "correlation_m": round(self.correlation_m, 3),
             "correlation_lags_m": [round(float(v), 3) for v in self.correlation_lags_m],
             "correlation": [round(float(v), 4) for v in self.correlation],
@@ -292,10 +312,13 @@ def correlation_length(
     cell_m: float,
     max_lag_m: float,
     rng: np.random.Generator,
+    monotone: bool = False,
 ) -> tuple[float, FloatArray, FloatArray]:
     """Correlation length (m) of the standardised residuals ``z`` at ``coords_ne`` (module docstring, step 5):
     ``(length, lags, correlation)`` with the zero lag first (correlation 1). ``fold`` gives each residual's fold
-    (pairs are taken within a fold: the errors of one map)."""
+    (pairs are taken within a fold: the errors of one map). ``monotone``: the binned correlation is first made
+    non-increasing in lag (pool-adjacent-violators weighted by the pairs per bin), for few residuals whose binned
+    correlation is noisy (a first crossing of 1/e would then be a crossing of the noise)."""
     from scipy.spatial.distance import pdist
 
     edges = np.geomspace(0.5 * cell_m, max_lag_m, 17)
@@ -331,6 +354,8 @@ def correlation_length(
         return float(max_lag_m), np.zeros(0), np.zeros(0)
     centre = np.r_[0.0, np.sqrt(edges[:-1] * edges[1:])[valid]]
     corr = np.r_[1.0, (num[valid] / den[valid]) / (var_sum / var_n)]
+    if monotone:
+        corr[1:] = -_isotonic(-corr[1:], den[valid].astype(float))
     below = np.flatnonzero(corr < _E_FOLD)
     if below.size == 0:
         return float(max_lag_m), centre, corr
