@@ -65,8 +65,9 @@ DEFAULT_FOLDS = 5
 #: residuals per distance bin of the error model (at least), and the most bins
 MIN_PER_BIN = 50
 MAX_BINS = 24
-#: The cross-validated sigma is multiplied by this factor, for what cross-validation within one set of lines cannot
-#: see (navigation and height differences between line sets). It covers the *local* part of the map error only: a
+#: Without crossing lines to measure it (module docstring, "Crossovers") the cross-validated sigma is multiplied by
+#: this factor, for what cross-validation within one set of lines cannot see (navigation and height differences
+#: between line sets); with them the measured between-line-set term replaces it. It covers the *local* part of the map error only: a
 #: constant level offset between a flight and the map (Osborne's tie lines sit -24.3 nT, per line -17 to -30 nT,
 #: below its flight lines' levelling) is not a per-node error and is the matchers' level term
 #: (``aiding.matchers.map_error.resolve_level``, marginalised per section). Calibrated without test leakage
