@@ -41,7 +41,8 @@ everywhere on the map (:class:`ErrorModel`). The map's correlation length is the
 cross-validation's (step 5) on the misfit (each line's median removed) along those lines, everywhere on them: the
 map's error as a line flown across the gridded ones sees it, both parts together (it decides how many independent
 pieces of evidence a section of readings holds; a levelling error correlated over kilometres, as on Rio's tie line
-9160, is not the cross-validation's few hundred metres). The lines used are the survey's cross lines that the gridder leaves
+9160, is not the cross-validation's few hundred metres); the map states the larger of it and the
+cross-validation's length (never claiming more independent evidence than either supports). The lines used are the survey's cross lines that the gridder leaves
 out, or lines given only for this (``grid_survey(check_lines=...)``; a survey gridded with ``line_type = "LINE"``
 gives its other lines): they never enter the grid. Without crossing lines the cross-validated sigma is multiplied
 by :data:`ERROR_INFLATION` instead, a constant calibrated on one survey. ``bench/maps.py --only error_layer`` and
@@ -115,14 +116,18 @@ class ErrorModel:
     between_points: int = 0
     #: the correlation length (m) of the misfit along the lines that measured the between-line-set term (NaN =
     #: none): the map's error as a line crossing the gridded ones sees it, cross-validation and between-line-set
-    #: parts together; the map states it in place of the cross-validation's ``correlation_m``
+    #: parts together; the map states the larger of it and the cross-validation's ``correlation_m``
     between_correlation_m: float = float("nan")
 
     @property
     def stated_correlation_m(self) -> float:
-        """The correlation length the map carries (m): :attr:`between_correlation_m` when measured, else the
-        cross-validation's."""
-        return self.between_correlation_m if np.isfinite(self.between_correlation_m) else self.correlation_m
+        """The correlation length the map carries (m): the larger of :attr:`between_correlation_m` (when measured)
+        and the cross-validation's. Never the shorter: a shorter length claims more independent evidence per section
+        of readings, and the along-line estimate from a few lines is noisy (Osborne's two halves of tie lines: 129
+        and 245 m, against the cross-validation's 200 m)."""
+        if not np.isfinite(self.between_correlation_m):
+            return self.correlation_m
+        return max(self.between_correlation_m, self.correlation_m)
 
     def _coef(self, d: FloatArray) -> tuple[FloatArray, FloatArray]:
         x = self.distance_m
@@ -156,8 +161,8 @@ class ErrorModel:
                 f"plus, in quadrature, the between-line-set error at {self.between_points} crossovers of "
                 f"{self.between_lines} lines not gridded: {np.sqrt(self.between_var):.3g} and "
                 f"{self.between_position_m:.3g} m x |grad|; the misfit along those lines is correlated over "
-                f"{self.between_correlation_m:.0f} m (the map's correlation length; cross-validation: "
-                f"{self.correlation_m:.0f} m)"
+                f"{self.between_correlation_m:.0f} m (cross-validation: {self.correlation_m:.0f} m; the map states "
+                f"the larger)"
                 if self.between_lines
                 else f"times {self.inflation:g} for what one line set cannot see (no crossing lines to measure it)"
             )
