@@ -128,6 +128,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="write every output (wall time, lat, lon, height, sigma, trusted, sent, state, aiding) as CSV",
     )
+    p.add_argument(
+        "--record-tlog",
+        default=None,
+        metavar="FILE",
+        help="append every MAVLink frame received to FILE as a telemetry log (.tlog), for magnav_ins.mavlink.playback",
+    )
     p.set_defaults(handler=run)
 
 
@@ -263,7 +269,8 @@ def run(args: argparse.Namespace) -> int:
     )
     from ..core.atomic import check_output_file
 
-    for option, path in (("--summary-json", args.summary_json), ("--track-csv", args.track_csv)):
+    for option, path in (("--summary-json", args.summary_json), ("--track-csv", args.track_csv),
+                         ("--record-tlog", args.record_tlog)):
         if path:
             check_output_file(path, option)  # before the bridge runs, not when it stops
     fmap = load_map(args.map)
@@ -295,6 +302,7 @@ def run(args: argparse.Namespace) -> int:
         peer_system=args.autopilot_sysid,
         peer_component=args.autopilot_compid,
         signing_key=key,
+        record_path=args.record_tlog,
     )
     stop = {"signal": None}
 

@@ -122,6 +122,8 @@ def bridge_command(plan: FlightPlan, port: int, summary: Path, track: Path) -> l
            "--date", "2026-03-20", "--imu-world", "flat", "--gnss-lag", f"{SITL_GNSS_LAG_S:g}"]  # fmt: skip
     if plan.grade is not None:
         cmd += ["--grade", plan.grade]
+    if plan.keep:  # what the bridge received, for a replay through the real Bridge (mavlink/playback.py)
+        cmd += ["--record-tlog", str(summary.with_name("bridge.tlog"))]
     cmd += ["--gps-id", "1"] if plan.output == "gps_input" else ["--ekf-source-set", "2"]
     return cmd + list(plan.bridge_args)
 
@@ -258,6 +260,12 @@ def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by st
         out["ekf_rms_horizontal_m"] = round(float(np.sqrt(np.mean(e**2))), 1)
         out["ekf_max_horizontal_m"] = round(float(e.max()), 1)
         out["ekf_final_horizontal_m"] = round(float(e[-1]), 1)
+        st = np.array(gcs.ekf_status).reshape(-1, 6)
+        ms = (st[:, 0] >= t_deny) & (st[:, 0] <= t_land)
+        if ms.any():  # EKF3's own view while denied: its horizontal position test ratio (1 = at the gate)
+            out["ekf_pos_horiz_ratio_max"] = round(float(st[ms, 3].max()), 3)
+            out["ekf_velocity_ratio_max"] = round(float(st[ms, 2].max()), 3)
+            out["ekf_status_flags_seen"] = sorted({int(f) for f in st[ms, 1]})
         texts = [(round(t - t_takeoff, 1), s, x) for t, s, x in gcs.texts if t >= t_takeoff]
         out["failsafes"] = [
             f"{t}: {x}" for t, s, x in texts
@@ -275,6 +283,7 @@ def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by st
             work / "flight.npz",
             truth=truth,
             ekf=ekf,
+            ekf_status=st,
             times=np.array(times),
             clock_offset=time.time() - time.monotonic(),
         )
