@@ -269,8 +269,11 @@ def run(args: argparse.Namespace) -> int:
     )
     from ..core.atomic import check_output_file
 
-    for option, path in (("--summary-json", args.summary_json), ("--track-csv", args.track_csv),
-                         ("--record-tlog", args.record_tlog)):
+    for option, path in (
+        ("--summary-json", args.summary_json),
+        ("--track-csv", args.track_csv),
+        ("--record-tlog", args.record_tlog),
+    ):
         if path:
             check_output_file(path, option)  # before the bridge runs, not when it stops
     fmap = load_map(args.map)
