@@ -30,7 +30,7 @@ import signal
 import sys
 
 from magnav_ins.mavlink.sitl import sitl_dir
-from magnav_ins.mavlink.sitl_flight import SITL_GRADE, FlightPlan, fly_square
+from magnav_ins.mavlink.sitl_flight import SITL_GRADE, SITL_MAP_SIGMA_NT, SITL_READING_SIGMA_NT, FlightPlan, fly_square
 
 #: square orientations: the order of the corners (fractions of the side, north and east)
 ORIENTATIONS = {
@@ -64,6 +64,19 @@ def main() -> None:
     ap.add_argument(
         "--grade", default=SITL_GRADE, help="the IMU grade the bridge's filter assumes (default: the SITL's, measured)"
     )
+    ap.add_argument(
+        "--reading-sigma",
+        type=float,
+        default=SITL_READING_SIGMA_NT,
+        help="the magnetometer reading error the bridge is told, nT (default: the SITL's, measured; 0: the bridge's)",
+    )
+    ap.add_argument(
+        "--map-sigma",
+        type=float,
+        default=SITL_MAP_SIGMA_NT,
+        help="the map's error against the SITL world the bridge's matcher is told, nT (default: measured over the "
+        "whole map; 0: the bridge's default matcher)",
+    )
     ap.add_argument("--bridge-arg", action="append", default=[], help="extra magnav-ins bridge argument (repeatable)")
     ap.add_argument("--keep", action="store_true", help="keep the work directory (logs, track)")
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -79,6 +92,7 @@ def main() -> None:
         speed_mps=args.speed_mps, deny_after_s=args.deny_after_s, output=args.output, grade=args.grade,
         speedup=args.speedup, sim_drift=args.sim_drift, bridge_args=tuple(args.bridge_arg), keep=args.keep,
         corners=ORIENTATIONS[args.orientation], warmup_m=args.warmup_m,
+        reading_sigma_nt=args.reading_sigma or None, map_sigma_nt=args.map_sigma or None,
     )  # fmt: skip
     out = {**fly_square(plan), "orientation": args.orientation}
     print(json.dumps(out) if args.json else json.dumps(out, indent=2))
