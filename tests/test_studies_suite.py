@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from magnav_ins.core.errors import ConfigError
@@ -31,6 +32,7 @@ def test_suite_groups_pool_their_cases(monkeypatch, tmp_path):
         assert list(res.groups[g]) == names
         for m in res.groups[g].values():
             assert m["runs"] == 2 and m["free_rms_horizontal_m"] > 0
+            assert m["median_run_rms_horizontal_m"] > 0
             assert {"rms_horizontal_m", "nees_mean", "fix_nees_mean", "hpl_exceedance", "divergence_rate"} <= set(m)
     # one case per group here: the group figures are that case's
     assert res.groups["osborne_tactical"] == res.cases[0][1]
@@ -51,3 +53,16 @@ def test_suite_command_is_listed_and_refuses_bad_options(capsys):
     assert cli.main(["suite", "--only", "osborne", "--quiet"]) == 2
     assert "unknown suite group" in capsys.readouterr().err
     assert cli.main(["suite", "--seeds", "0", "--quiet"]) == 2
+
+
+def test_median_run_rms_is_the_median_of_each_runs_own_rms():
+    from magnav_ins.studies.metrics import RunMetrics
+
+    runs = [
+        RunMetrics(e=np.array([3.0, 4.0]), nees=np.zeros(2)),  # RMS sqrt(12.5)
+        RunMetrics(e=np.array([1.0, np.nan, 1.0]), nees=np.zeros(3)),  # RMS 1 over its finite samples
+        RunMetrics(e=np.array([100.0, 100.0, 100.0, 100.0]), nees=np.zeros(4)),  # RMS 100: moves the pooled RMS
+        RunMetrics(e=np.array([np.nan]), nees=np.zeros(1)),  # no finite sample: left out
+    ]
+    assert suite.median_run_rms(runs) == pytest.approx(np.sqrt(12.5))
+    assert suite.median_run_rms(runs[3:]) is None
