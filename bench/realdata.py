@@ -7,7 +7,7 @@ is flown, against which maps, with which estimators and set-up) run from the pro
 Prints the per-case and per-group tables (stderr with ``--json``) and, with ``--json``, one line on stdout:
 ``{"groups": {"osborne_tactical": {ESTIMATOR: {...}}, "osborne_navigation": {...}, "rio": {...}}}`` with, per
 estimator, the ``metrics.json`` keys ``rms_horizontal_m``, ``nees_mean``, ``fix_nees_mean``, ``hpl_exceedance``,
-``divergence_rate`` (and ``max_horizontal_m``, ``availability``, ``hpl_median_m``, ``runs``) plus
+``divergence_rate`` (and ``nees_divergence_rate``, ``max_horizontal_m``, ``availability``, ``hpl_median_m``, ``runs``) plus
 ``free_rms_horizontal_m``, pooled over the group's cases and runs; ``wall_s`` and the job count are printed with
 the tables. The same suite: ``magnav-ins suite``.
 """
