@@ -505,3 +505,26 @@ def test_matchers_on_a_geodetic_grid_map():
     assert fix.available, fix.reason
     d = local(fmap, fix.lat, fix.lon) - truth[-1]
     assert np.hypot(*d) < 10.0 and d @ np.linalg.solve(fix.cov_ne, d) < 12.0
+
+
+def test_window_floor_cells_gives_a_tight_prior_a_window_of_whole_map_cells():
+    """A prior sigma of 3 m makes a search window of +-12 m (grown to +-48 m), inside one 100 m cell of the map:
+    the flat-map test sees no nodes' variation and the likelihood of a smooth map cannot fit its peak in it, so no
+    fix (the SITL flights' "flat map" refusals just after the GNSS was lost). ``window_floor_cells=2`` scans at least
+    two cells each way, and the fix it gives is where the vehicle is (within 3 of its sigmas)."""
+    rng = np.random.default_rng(3)
+    fmap = exact(random_field_map((60, 60), 100.0, 400.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN))
+    s = 5.0 * np.arange(80)  # 400 m at 10 m/s, a reading every 0.5 s
+    truth = np.array([2500.0, 2500.0]) + np.column_stack([s, 0.3 * s])
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 2.0, s.size)
+    w = make_window(fmap, 0.5 * np.arange(80.0), truth, z, 2.0, KIND_TF, np.array([2.0, -2.0]), np.eye(2) * 9.0,
+                    np.zeros(2))  # fmt: skip
+    narrow = LikelihoodMatcher(method="ml", demean=True).match(w, fmap)
+    assert not narrow.available
+    wide = LikelihoodMatcher(method="ml", demean=True, window_floor_cells=2.0).match(w, fmap)
+    assert wide.available, wide.reason
+    err = local(fmap, wide.lat, wide.lon) - truth[-1]
+    assert float(err @ np.linalg.solve(wide.cov_ne, err)) < 9.0
+    with pytest.raises(ConfigError, match="window_floor_cells"):
+        LikelihoodMatcher(window_floor_cells=-1.0)
