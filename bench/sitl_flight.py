@@ -15,10 +15,15 @@ sample, 0.1 mg offsets and 0.1 % scale from ``copter.parm``'s INS calibration, n
 its gyros miss the Earth's rate and its world is flat, 0.2-0.3 mg of apparent acceleration error at 15 m/s): the
 bench tells the bridge ``--grade tactical`` (1 deg/h, 1 mg), the grade that covers it; a MEMS autopilot on a real
 airframe is the bridge's default ``autopilot`` grade. ``--grade autopilot`` flies the same square with that model.
+Likewise its magnetometer (no noise; 0.5 nT about a 40 s mean in flight) and its world, made from the bridge's own
+survey (2.3-3.8 nT from the map over demeaned sections anywhere on the map): the bench tells the bridge
+``--reading-sigma 1`` and a matcher ``map_sigma`` of 4 nT (``SITL_READING_SIGMA_NT``, ``SITL_MAP_SIGMA_NT``; 0 = the
+bridge's defaults, 5 and 10 nT, for a real magnetometer on a real map). ``--keep`` keeps the work directory with
+``bridge.tlog``, everything the bridge received, for :mod:`magnav_ins.mavlink.playback`.
 
 Run by hand (about 17 minutes for the default square: asked for 15 m/s, the SITL copter flies 10 m/s; the SITL runs
 in real time): ``python bench/sitl_flight.py --json [--output gps_input|odometry] [--home=LAT,LON] [--side-m 2000]
-[--altitude-m 80] [--speed-mps 15] [--warmup-m 150] [--grade tactical]``
+[--altitude-m 80] [--speed-mps 15] [--warmup-m 150] [--grade ...] [--reading-sigma 1] [--map-sigma 4] [--keep]``
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import signal
 import sys
 
 from magnav_ins.mavlink.sitl import sitl_dir
-from magnav_ins.mavlink.sitl_flight import SITL_GRADE, FlightPlan, fly_square
+from magnav_ins.mavlink.sitl_flight import SITL_GRADE, SITL_MAP_SIGMA_NT, SITL_READING_SIGMA_NT, FlightPlan, fly_square
 
 #: square orientations: the order of the corners (fractions of the side, north and east)
 ORIENTATIONS = {
@@ -64,6 +69,19 @@ def main() -> None:
     ap.add_argument(
         "--grade", default=SITL_GRADE, help="the IMU grade the bridge's filter assumes (default: the SITL's, measured)"
     )
+    ap.add_argument(
+        "--reading-sigma",
+        type=float,
+        default=SITL_READING_SIGMA_NT,
+        help="the magnetometer reading error the bridge is told, nT (default: the SITL's, measured; 0: the bridge's)",
+    )
+    ap.add_argument(
+        "--map-sigma",
+        type=float,
+        default=SITL_MAP_SIGMA_NT,
+        help="the map's error against the SITL world the bridge's matcher is told, nT (default: measured over the "
+        "whole map; 0: the bridge's default matcher)",
+    )
     ap.add_argument("--bridge-arg", action="append", default=[], help="extra magnav-ins bridge argument (repeatable)")
     ap.add_argument("--keep", action="store_true", help="keep the work directory (logs, track)")
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -79,6 +97,7 @@ def main() -> None:
         speed_mps=args.speed_mps, deny_after_s=args.deny_after_s, output=args.output, grade=args.grade,
         speedup=args.speedup, sim_drift=args.sim_drift, bridge_args=tuple(args.bridge_arg), keep=args.keep,
         corners=ORIENTATIONS[args.orientation], warmup_m=args.warmup_m,
+        reading_sigma_nt=args.reading_sigma or None, map_sigma_nt=args.map_sigma or None,
     )  # fmt: skip
     out = {**fly_square(plan), "orientation": args.orientation}
     print(json.dumps(out) if args.json else json.dumps(out, indent=2))

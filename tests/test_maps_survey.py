@@ -12,6 +12,7 @@ import pytest
 from magnav_ins import cli
 from magnav_ins.core.errors import ConfigError, InputError
 from magnav_ins.core.frames import meters_to_latlon
+from magnav_ins.maps.error_layer import ERROR_INFLATION
 from magnav_ins.maps.geoid import geoid_undulation
 from magnav_ins.maps.io import load_map, parse_column_mapping, read_map, read_survey, select_lines
 from magnav_ins.studies import model as Mdl
@@ -156,7 +157,19 @@ def test_map_grid_by_line_type_predicts_the_tie_lines(tmp_path, monkeypatch, cap
         _field(np.array([700.0, 2200.0]), np.array([1100.0, 2900.0])),
         atol=1e-3,
     )
+    # the tie lines would measure the error between line sets at their crossovers (never gridded), but 3 x 13
+    # crossovers are too few for the term (error_layer.MIN_CROSSOVERS): the layer keeps the stated inflation; a tie
+    # line in exclude_lines is used for nothing, and the map's values do not change
+    assert m.metadata["error_model"]["between_lines"]["lines"] == 0
+    assert m.metadata["error_model"]["inflation"] == ERROR_INFLATION
+    left = load_map(str(p), grid_spacing_m=50.0, columns=RIO_COLUMNS, line_type="LINE", method="linear",
+                    exclude_lines=[9000])  # fmt: skip
+    assert left.metadata["excluded_lines"] == [9000]
+    np.testing.assert_array_equal(left.values, m.values)
+    assert cli.main(argv + ["--line-type", "LINE", "--check-lines", "TIE", "--error-lines", "TIE"]) == 0
+    assert "in-sample" in capsys.readouterr().out
     # user mistakes: one line, exit status 2
+    assert cli.main(argv + ["--line-type", "LINE", "--error-lines", "LINE"]) == 2
     assert cli.main(argv + ["--line-type", "TIE", "--check-lines", "TIE"]) == 2
     assert cli.main(argv[:-2] + ["--out", str(tmp_path / "x.nc"), "--column", "bogus"]) == 2
     assert "OUR_NAME=FILE_COLUMN" in capsys.readouterr().err

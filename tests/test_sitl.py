@@ -91,11 +91,18 @@ def test_short_gnss_denied_flight_on_the_bridge_lands_near_home():
     autopilot's EKF within the issue's bounds (RMS < 50 m, max < 150 m), landing within 50 m of home, the GPS_INPUT
     stream above 9 Hz without a pause the autopilot would notice (AP_GPS wants a mean interval under 215 ms), no IMU
     gap, the bridge's trusted outputs honest (NEES)."""
-    from magnav_ins.mavlink.sitl_flight import SITL_GRADE, FlightPlan, fly_square
+    from magnav_ins.mavlink.sitl_flight import (
+        SITL_GRADE,
+        SITL_MAP_SIGMA_NT,
+        SITL_READING_SIGMA_NT,
+        FlightPlan,
+        fly_square,
+    )
 
     plan = FlightPlan(
-        home=HOME[:2], side_m=500.0, altitude_m=25.0, deny_after_s=50.0, grade=SITL_GRADE, time_limit_s=360.0
-    )
+        home=HOME[:2], side_m=500.0, altitude_m=25.0, deny_after_s=50.0, grade=SITL_GRADE, time_limit_s=360.0,
+        reading_sigma_nt=SITL_READING_SIGMA_NT, map_sigma_nt=SITL_MAP_SIGMA_NT,
+    )  # fmt: skip
     out = fly_square(plan)
     print(json.dumps(out))  # shown when an assertion fails
     assert out["landed"] and not out["aborted"], out

@@ -55,6 +55,29 @@ def test_divergence_test():
     assert M.is_divergent(bad, free)
 
 
+def test_filter_divergence_is_the_error_leaving_its_covariance():
+    """The NEES test (module docstring): a run whose error grows with a covariance that grows as fast (an aided run
+    without late fixes, following free inertial honestly) is not divergent, though Wang's error-growth test flags
+    it; one whose last-quarter NEES mean exceeds chi-square(2)'s 99 % point (9.21) is. A consistent filter's NEES
+    (chi-square(2) draws, 200 runs of 40 epochs) is flagged in at most 1 % of runs."""
+    assert M.NEES_DIVERGENCE_BOUND == pytest.approx(9.2103, abs=1e-4)
+    t = np.linspace(0.0, 1.0, 40)
+    growing = 10.0 + 1000.0 * t**2
+    free = 10.0 + 1200.0 * t**2
+    honest = np.full(40, 2.0)  # error and covariance grow together
+    assert M.is_divergent(growing, free) and not M.is_nees_divergent(honest)
+    leaving = np.r_[np.full(30, 2.0), np.full(10, 12.0)]
+    assert M.is_nees_divergent(leaving)
+    assert M.is_nees_divergent(np.full(40, np.nan)) is None
+    rng = np.random.default_rng(3)
+    flags = [M.is_nees_divergent(rng.chisquare(2, 40)) for _ in range(200)]
+    assert np.mean(flags) <= 0.01
+    runs = [M.RunMetrics(growing, honest, divergent=True), M.RunMetrics(growing, leaving, divergent=True)]
+    a = M.aggregate(runs, "ml", "ukf")
+    assert a["divergence_rate"] == 1.0 and a["nees_divergence_rate"] == 0.5
+    assert M.aggregate([M.RunMetrics(growing, np.full(40, np.nan))], None, "free")["nees_divergence_rate"] is None
+
+
 def test_aggregate_hand_computed():
     r1 = M.RunMetrics(np.array([3.0, 4.0]), np.array([1.0, 3.0]), np.array([1.0, 5.0]), 4, False)
     r2 = M.RunMetrics(np.array([0.0, 12.0]), np.array([np.nan, 2.0]), np.array([25.0]), 2, True)

@@ -31,7 +31,7 @@ DESIGN_KEYS = {
 }
 EXTRA_KEYS = {
     "fix_attempts", "fixes_issued", "non_finite_fraction", "no_fix_reasons", "fix_nees_mean", "hpl_median_m",
-    "hpl_exceedance", "rms_after_first_fix_m",
+    "hpl_exceedance", "rms_after_first_fix_m", "nees_divergence_rate",
 }  # fmt: skip
 #: the stand-in's protection level: sqrt(2 ln 10) sigma, exceeded by a circular Gaussian error 10 % of the time
 HPL_K10 = float(np.sqrt(2.0 * np.log(10.0)))

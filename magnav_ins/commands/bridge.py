@@ -56,7 +56,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--date", default=None, help="date for IGRF, YYYY-MM-DD (default today)")
     p.add_argument("--reading-interval", type=float, default=0.5, help="seconds between magnetometer readings (0.5)")
     p.add_argument("--reading-sigma", type=float, default=5.0, help="1-sigma of a reading in the map's unit (5 nT)")
-    p.add_argument("--window", type=int, default=40, help="readings per matcher window (default 40)")
+    p.add_argument(
+        "--window",
+        type=int,
+        default=80,
+        help="readings per matcher window (default 80: 40 s, 400 m at 10 m/s, four cells of a 100 m map; a 200 m "
+        "section over a smooth map gave a likelihood wider than the search window)",
+    )
     p.add_argument("--match-every", type=int, default=20, help="readings between match attempts (default 20)")
     p.add_argument(
         "--max-sigma",
@@ -128,13 +134,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="write every output (wall time, lat, lon, height, sigma, trusted, sent, state, aiding) as CSV",
     )
+    p.add_argument(
+        "--record-tlog",
+        default=None,
+        metavar="FILE",
+        help="append every MAVLink frame received to FILE as a telemetry log (.tlog), for magnav_ins.mavlink.playback",
+    )
     p.set_defaults(handler=run)
 
 
 #: the bridge's matcher: maximum likelihood on demeaned sections (a constant offset between the readings and the map
 #: does not move the fix), the map's error (10 nT) in the likelihood and a 20 m floor on the fix sigma (the map
 #: gridded at 100 m, the INS track shape over a section), fixes wider than 150 m not issued. Chosen on the offline
-#: copter square (bench/copter_square.py), not on the SITL flight it is then measured on.
+#: copter square (bench/copter_square.py), not on the SITL flight it is then measured on. A search window of at least
+#: two map cells each way (``window_floor_cells``): with the tight prior just after the GNSS is lost the window was
+#: inside one 100 m cell and every attempt was refused as "flat map" (the SITL flights, README).
 DEFAULT_MATCHER = {
     "kind": "ml",
     "demean": True,
@@ -142,6 +156,7 @@ DEFAULT_MATCHER = {
     "min_fix_sigma_m": 20.0,
     "max_fix_sigma_m": 150.0,
     "min_variability": 0.3,
+    "window_floor_cells": 2.0,
 }
 DEFAULT_MATCHER_TEXT = ", ".join(f"{k}={v}" for k, v in DEFAULT_MATCHER.items())
 
@@ -263,7 +278,11 @@ def run(args: argparse.Namespace) -> int:
     )
     from ..core.atomic import check_output_file
 
-    for option, path in (("--summary-json", args.summary_json), ("--track-csv", args.track_csv)):
+    for option, path in (
+        ("--summary-json", args.summary_json),
+        ("--track-csv", args.track_csv),
+        ("--record-tlog", args.record_tlog),
+    ):
         if path:
             check_output_file(path, option)  # before the bridge runs, not when it stops
     fmap = load_map(args.map)
@@ -295,6 +314,7 @@ def run(args: argparse.Namespace) -> int:
         peer_system=args.autopilot_sysid,
         peer_component=args.autopilot_compid,
         signing_key=key,
+        record_path=args.record_tlog,
     )
     stop = {"signal": None}
 

@@ -2,7 +2,7 @@
 
     magnav-ins map info MAP [--json]
     magnav-ins map grid SURVEY --spacing M [--exclude-lines ID,ID,...] [--exclude-tie-lines] [--line-type T]
-                   [--exclude-line-type T] [--check-lines T] [--column OURS=THEIRS ...] [--geoid-m N] [--out MAP.nc]
+                   [--exclude-line-type T] [--check-lines T] [--error-lines T] [--column OURS=THEIRS ...] [--geoid-m N] [--out MAP.nc]
     magnav-ins map sample MAP --points CSV --out CSV [--method bilinear|bicubic]
     magnav-ins map combine FINE COARSE [--margin-m M] [--blend-m M] [--no-level] --out MAP.nc
     magnav-ins map convert FILE [--unit U] [--kind K] [--altitude-m M] [--datum D] [--crs CRS] [--variable V]
@@ -196,6 +196,14 @@ def _add_grid(map_sub: argparse._SubParsersAction) -> None:
         help="after gridding, predict the readings of the lines of this line_type (left out of the grid, e.g. TIE) "
         "and print the misfit",
     )
+    p.add_argument(
+        "--error-lines",
+        default=None,
+        metavar="TYPE",
+        help="lines of this line_type (not gridded, e.g. TIE) whose crossovers with the gridded lines measure the "
+        "map's error between line sets (added to the cross-validated error layer; the cross lines the line gridder "
+        "leaves out are used so without this option)",
+    )
     p.add_argument("--altitude-m", type=float, default=None, help="constant ellipsoidal height if no height column")
     p.add_argument(
         "--error-folds",
@@ -263,6 +271,14 @@ def run_grid(args: argparse.Namespace) -> int:
         exclude = sorted(set(exclude) | set(ties))
     if check_ids:
         exclude = sorted(set(exclude) | (set(check_ids) & set(used.line_ids().tolist())))
+    error_lines = None
+    if args.error_lines is not None:
+        if args.error_lines == args.line_type:
+            raise InputError(f"--error-lines {args.error_lines}: the lines gridded cannot measure their own error")
+        error_lines = survey.of_type(args.error_lines)
+        error_lines = error_lines.select(~np.isin(error_lines.line, np.asarray(exclude, dtype=np.int64)))
+        if len(error_lines) == 0:
+            raise InputError(f"--error-lines {args.error_lines}: all its lines are excluded")
     if args.error_folds < 0 or args.error_folds == 1:
         raise InputError(f"--error-folds: expected 0 (no error layer) or at least 2, got {args.error_folds}")
     fmap = grid_survey(
@@ -273,6 +289,7 @@ def run_grid(args: argparse.Namespace) -> int:
         name=out.stem,
         error_folds=args.error_folds,
         level_sigma=args.level_sigma,
+        check_lines=error_lines,
     )
     fmap.metadata["source"] = src.name
     fmap.metadata["heights"] = survey.heights
@@ -306,6 +323,11 @@ def run_grid(args: argparse.Namespace) -> int:
                 f"(map - observed) RMS {misfit['rms']:.2f}, mean {misfit['mean']:.2f}, std {misfit['std']:.2f} "
                 f"{fmap.unit}; {misfit['n_off']} off the map"
                 + (f"; RMS of misfit / error-layer sigma {misfit['z_rms']:.2f}" if "z_rms" in misfit else "")
+                + (
+                    " (in-sample: these lines also measured the layer's between-line-set term)"
+                    if args.error_lines is not None and args.error_lines == args.check_lines
+                    else ""
+                )
             )
     return 0
 

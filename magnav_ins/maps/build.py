@@ -31,14 +31,22 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..core.errors import InputError, MagnavError, MapError
 from ..core.frames import geodetic_to_ned
-from .error_layer import DEFAULT_FOLDS, ERROR_INFLATION, ErrorModel, cross_validate, nearest_distance
+from .error_layer import (
+    DEFAULT_FOLDS,
+    ERROR_INFLATION,
+    ErrorModel,
+    correlation_length,
+    cross_validate,
+    fit_between_lines,
+    nearest_distance,
+)
 from .grid import GridMap
 from .interp import bilinear, bilinear_scalar
 from .survey import Survey
@@ -151,6 +159,7 @@ def grid_survey(
     error_seed: int = 0,
     error_inflation: float = ERROR_INFLATION,
     level_sigma: float | None = None,
+    check_lines: Survey | None = None,
 ) -> GridMap:
     """Grid ``survey`` at ``spacing_m`` (m) in a local tangent-plane frame; returns a draped local :class:`GridMap`.
 
@@ -161,8 +170,13 @@ def grid_survey(
     The map carries its error layer (:mod:`magnav_ins.maps.error_layer`): a block ``error_folds``-fold
     cross-validation (blocks of ``error_block_m``, default about one line spacing; folds drawn from
     ``error_seed``) re-grids the survey ``error_folds`` more times; ``error_folds=0`` gives a map without a layer.
-    ``error_inflation`` multiplies the cross-validated sigma (default
-    :data:`~magnav_ins.maps.error_layer.ERROR_INFLATION`, calibrated on Osborne's independent tie lines).
+    The between-line-set error (the module docstring of :mod:`~magnav_ins.maps.error_layer`, "Crossovers") is
+    measured at the crossovers of the lines that are not gridded - the survey's cross lines the bidirectional
+    gridder leaves out, and ``check_lines`` (readings of other lines, e.g. the survey's tie lines when only its
+    flight lines are gridded; used for the error estimate and the level crossovers only, never for the grid) - and
+    added in quadrature to the cross-validated sigma. Without crossing lines ``error_inflation`` multiplies the
+    cross-validated sigma instead (default :data:`~magnav_ins.maps.error_layer.ERROR_INFLATION`, calibrated on
+    Osborne's independent tie lines).
 
     The map's level prior (``metadata["level_sigma"]``, map unit: the 1-sigma of a constant offset between a
     flight's readings and the map, which the matchers marginalise; ``aiding.matchers.map_error.resolve_level``):
@@ -183,6 +197,8 @@ def grid_survey(
         survey = survey.select(~np.isin(survey.line, np.asarray(exclude_lines, dtype=np.int64)))  # type: ignore[arg-type]
     if len(survey) < 4:
         raise InputError(f"{src}: {len(survey)} readings left to grid; need at least 4")
+    if check_lines is not None and (check_lines.line is None or len(check_lines) == 0):
+        raise InputError(f"{src}: check_lines must be survey readings with line ids")
     if method == "auto":
         method = "bidirectional" if survey.line is not None else "linear"
     if method == "bidirectional" and survey.line is None:
@@ -229,6 +245,7 @@ def grid_survey(
             error_block_m,
             error_seed,
             error_inflation,
+            _crossing_readings(survey, n, e, origin, meta, check_lines),
         )
         meta["error_model"] = err_model.as_metadata()
     if level_sigma is not None:
@@ -237,7 +254,9 @@ def grid_survey(
         meta["level_sigma"] = float(level_sigma)
         meta["level_sigma_source"] = "stated when gridding"
     elif survey.line is not None:
-        xo = crossover_level_sigma(survey, n, e, max(0.5 * spacing_m, 5.0))
+        both = survey if check_lines is None else _concat(survey, check_lines)
+        nb, eb = (n, e) if check_lines is None else _local(both)[:2]
+        xo = crossover_level_sigma(both, nb, eb, max(0.5 * spacing_m, 5.0))
         if xo is not None:
             meta["level_crossover"] = {"rms": round(xo[0], 6), "lines": xo[1], "pairs": xo[2]}
     return GridMap(
@@ -252,9 +271,42 @@ def grid_survey(
         name=name or (survey.source and survey.source.split("/")[-1]) or "survey",
         metadata=meta,
         error_sigma=err,
-        error_correlation_m=None if err_model is None else err_model.correlation_m,
+        error_correlation_m=None if err_model is None else err_model.stated_correlation_m,
         error_source="" if err_model is None else err_model.describe(),
     )
+
+
+def _concat(a: Survey, b: Survey) -> Survey:
+    """The readings of ``a`` and ``b`` (both with line ids) as one survey (``a``'s kind and source)."""
+    assert a.line is not None and b.line is not None
+    return Survey(
+        np.r_[a.lat, b.lat], np.r_[a.lon, b.lon], np.r_[a.h, b.h], np.r_[a.value, b.value], a.kind,
+        np.r_[a.line, b.line], a.source,
+    )  # fmt: skip
+
+
+def _crossing_readings(
+    survey: Survey,
+    n: FloatArray,
+    e: FloatArray,
+    origin: tuple[float, float, float],
+    meta: dict[str, object],
+    check_lines: Survey | None,
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64]] | None:
+    """The readings of lines that are not gridded (the survey's ignored cross lines and ``check_lines``) as local
+    ``(n, e, value, line)`` (m, m, map unit, id) about the map's ``origin``; None when there are none."""
+    parts = []
+    ignored = np.asarray(meta.get("ignored_lines", []), dtype=np.int64)
+    if ignored.size and survey.line is not None:
+        m = np.isin(survey.line, ignored)
+        parts.append((n[m], e[m], survey.value[m], survey.line[m]))
+    if check_lines is not None:
+        assert check_lines.line is not None
+        r = geodetic_to_ned(check_lines.lat, check_lines.lon, origin[2], *origin)
+        parts.append((r[:, 0], r[:, 1], np.asarray(check_lines.value, float), check_lines.line))
+    if not parts:
+        return None
+    return tuple(np.concatenate([p[k] for p in parts]) for k in range(4))  # type: ignore[return-value]
 
 
 def _error_layer(
@@ -272,10 +324,12 @@ def _error_layer(
     block_m: float | None,
     seed: int,
     inflation: float,
+    crossing: tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64]] | None = None,
 ) -> tuple[FloatArray, ErrorModel]:
     """The error layer of the map ``vals`` gridded from ``survey`` (local ``n``, ``e`` m): block k-fold
     cross-validation with the same gridder (:func:`magnav_ins.maps.error_layer.cross_validate`), the model evaluated
-    at every node's distance to the nearest reading used."""
+    at every node's distance to the nearest reading used; plus the between-line-set term fitted at the crossovers of
+    the ``crossing`` readings (local n, e, value, line) when they give one (:func:`_between_lines`)."""
     used = np.ones(len(survey), dtype=bool)
     if method == "bidirectional":
         used = ~np.isin(survey.line, np.asarray(meta.get("ignored_lines", []), dtype=np.int64))  # type: ignore[arg-type]
@@ -320,9 +374,74 @@ def _error_layer(
         seed=seed,
         inflation=inflation,
     )
+    if crossing is not None:
+        model = _between_lines(model, crossing, coords, vals, grad, north0, east0, spacing_m)
     g_nodes = np.where(np.isfinite(grad), grad, np.nanmedian(grad))
     layer = model.sigma_at(node_d.reshape(vals.shape), g_nodes)
     return layer, model
+
+
+def _between_lines(
+    model: ErrorModel,
+    crossing: tuple[FloatArray, FloatArray, FloatArray, NDArray[np.int64]],
+    coords: FloatArray,
+    vals: FloatArray,
+    grad: FloatArray,
+    north0: float,
+    east0: float,
+    spacing_m: float,
+) -> ErrorModel:
+    """``model`` with the between-line-set term (:func:`magnav_ins.maps.error_layer.fit_between_lines`) fitted at
+    the crossovers: the ``crossing`` readings within half a node spacing (at least 5 m) of a gridded reading
+    (``coords``, local m), and the correlation length of the misfit along those lines
+    (:func:`_misfit_correlation`); ``model`` unchanged when they give no term. The term replaces the inflation."""
+    cn, ce, cv, cl = crossing
+    d = nearest_distance(coords, np.c_[cn, ce])
+    qn, qe = np.ascontiguousarray(cn), np.ascontiguousarray(ce)
+    res = bilinear_scalar(np.ascontiguousarray(vals), north0, spacing_m, east0, spacing_m, qn, qe, 0.0) - cv
+    g = bilinear_scalar(np.ascontiguousarray(grad), north0, spacing_m, east0, spacing_m, qn, qe, 0.0)
+    m = d <= max(0.5 * spacing_m, 5.0)
+    if not m.any():
+        return model
+    cv_var = replace(model, inflation=1.0).sigma_at(d[m], g[m]) ** 2
+    fit = fit_between_lines(res[m], cl[m], cv_var, g[m])
+    if fit is None:
+        return model
+    c, p, lines, points = fit
+    return replace(
+        model,
+        inflation=1.0,
+        between_var=c,
+        between_position_m=p,
+        between_lines=lines,
+        between_points=points,
+        between_correlation_m=_misfit_correlation(np.c_[cn, ce], res, cl, spacing_m, model.block_m),
+    )
+
+
+def _misfit_correlation(
+    coords: FloatArray, residual: FloatArray, line: NDArray[np.int64], spacing_m: float, block_m: float
+) -> float:
+    """Correlation length (m) of the misfit ``residual`` (map - reading; each line's median removed) of the lines not
+    gridded along those lines (:func:`magnav_ins.maps.error_layer.correlation_length`, pairs within a line, cells
+    of ``spacing_m``): the map error as a line crossing the gridded ones sees it; NaN when it cannot be measured."""
+    ok = np.isfinite(residual)
+    coords, r, ln = coords[ok], residual[ok], np.asarray(line)[ok]
+    if r.size < 10:
+        return float("nan")
+    rd = np.empty_like(r)
+    for lid in np.unique(ln):
+        k = ln == lid
+        rd[k] = r[k] - np.median(r[k])
+    scale = float(np.sqrt(np.mean(rd**2)))
+    if not scale > 0:
+        return float("nan")
+    _, fold = np.unique(ln, return_inverse=True)
+    length, lags, _ = correlation_length(
+        coords, rd / scale, fold.astype(np.int64), spacing_m, max(20.0 * block_m, 40.0 * spacing_m),
+        np.random.default_rng(0), monotone=True,
+    )  # fmt: skip
+    return float(length) if lags.size else float("nan")
 
 
 def gradient_magnitude(values: FloatArray, spacing_m: float) -> FloatArray:

@@ -27,9 +27,26 @@ Verde's ``BlockKFold``, Uieda 2018, JOSS 3(30):957):
 The layer is an estimate made on the survey's own readings: a levelling difference between line sets (e.g. the
 -24 nT between Osborne's flight and tie lines) is not visible to it, and is not a per-node error either: the
 matchers marginalise a constant level offset per section (``aiding.matchers.map_error.resolve_level``; its prior
-1-sigma is the map's ``metadata["level_sigma"]``, else 10 % of the map's standard deviation), and
-:data:`ERROR_INFLATION` covers the local part only. ``bench/maps.py --only error_layer`` checks it
-on independent tie lines (the RMS of residual / sigma should be about 1).
+1-sigma is the map's ``metadata["level_sigma"]``, else 10 % of the map's standard deviation).
+
+Crossovers: the local error between line sets. Cross-validation within one set of lines cannot see what differs
+between that set and any other line flown over the area: navigation (registration) and height differences and
+along-line levelling errors. A survey's tie lines measure it: where a tie-line reading lies within half a node
+spacing of a gridded line's reading (a *crossover*), the map there is anchored by the gridded line and its
+cross-validated error is small, so the tie reading's misfit (map - reading, less its line's median misfit: the
+level, above) is the between-line-set error. Its variance beyond the cross-validated one is fitted, as the
+cross-validation's, as ``c + p^2 |grad m|^2`` (non-negative least squares over all crossovers,
+:func:`fit_between_lines`: ``sqrt(c)`` a map-unit floor, ``p`` a registration error in m) and added in quadrature
+everywhere on the map (:class:`ErrorModel`). The map's correlation length is then measured as the
+cross-validation's (step 5) on the misfit (each line's median removed) along those lines, everywhere on them: the
+map's error as a line flown across the gridded ones sees it, both parts together (it decides how many independent
+pieces of evidence a section of readings holds; a levelling error correlated over kilometres, as on Rio's tie line
+9160, is not the cross-validation's few hundred metres); the map states the larger of it and the
+cross-validation's length (never claiming more independent evidence than either supports). The lines used are the survey's cross lines that the gridder leaves
+out, or lines given only for this (``grid_survey(check_lines=...)``; a survey gridded with ``line_type = "LINE"``
+gives its other lines): they never enter the grid. Without crossing lines the cross-validated sigma is multiplied
+by :data:`ERROR_INFLATION` instead, a constant calibrated on one survey. ``bench/maps.py --only error_layer`` and
+``--only crossover`` check the layer on tie lines (the RMS of residual / sigma should be about 1).
 """
 
 from __future__ import annotations
@@ -49,8 +66,9 @@ DEFAULT_FOLDS = 5
 #: residuals per distance bin of the error model (at least), and the most bins
 MIN_PER_BIN = 50
 MAX_BINS = 24
-#: The cross-validated sigma is multiplied by this factor, for what cross-validation within one set of lines cannot
-#: see (navigation and height differences between line sets). It covers the *local* part of the map error only: a
+#: Without crossing lines to measure it (module docstring, "Crossovers") the cross-validated sigma is multiplied by
+#: this factor, for what cross-validation within one set of lines cannot see (navigation and height differences
+#: between line sets); with them the measured between-line-set term replaces it. It covers the *local* part of the map error only: a
 #: constant level offset between a flight and the map (Osborne's tie lines sit -24.3 nT, per line -17 to -30 nT,
 #: below its flight lines' levelling) is not a per-node error and is the matchers' level term
 #: (``aiding.matchers.map_error.resolve_level``, marginalised per section). Calibrated without test leakage
@@ -90,6 +108,26 @@ class ErrorModel:
     correlation_lags_m: FloatArray = field(default_factory=lambda: np.zeros(0))
     correlation: FloatArray = field(default_factory=lambda: np.zeros(0))
     inflation: float = 1.0
+    #: the between-line-set term (module docstring, "Crossovers"): sigma_x^2 = between_var + between_position_m^2 g^2
+    #: (unit^2, m), fitted on ``between_points`` crossover readings of ``between_lines`` lines not gridded; 0 = none
+    between_var: float = 0.0
+    between_position_m: float = 0.0
+    between_lines: int = 0
+    between_points: int = 0
+    #: the correlation length (m) of the misfit along the lines that measured the between-line-set term (NaN =
+    #: none): the map's error as a line crossing the gridded ones sees it, cross-validation and between-line-set
+    #: parts together; the map states the larger of it and the cross-validation's ``correlation_m``
+    between_correlation_m: float = float("nan")
+
+    @property
+    def stated_correlation_m(self) -> float:
+        """The correlation length the map carries (m): the larger of :attr:`between_correlation_m` (when measured)
+        and the cross-validation's. Never the shorter: a shorter length claims more independent evidence per section
+        of readings, and the along-line estimate from a few lines is noisy (Osborne's two halves of tie lines: 129
+        and 245 m, against the cross-validation's 200 m)."""
+        if not np.isfinite(self.between_correlation_m):
+            return self.correlation_m
+        return max(self.between_correlation_m, self.correlation_m)
 
     def _coef(self, d: FloatArray) -> tuple[FloatArray, FloatArray]:
         x = self.distance_m
@@ -107,7 +145,8 @@ class ErrorModel:
         inputs give NaN."""
         d, g = np.broadcast_arrays(np.asarray(distance_m, dtype=float), np.asarray(gradient, dtype=float))
         a, b = self._coef(d)
-        out = np.minimum(self.inflation * np.sqrt(a + b * g**2), self.cap)
+        var = self.inflation**2 * (a + b * g**2) + self.between_var + self.between_position_m**2 * g**2
+        out = np.minimum(np.sqrt(var), self.cap)
         return np.where(np.isfinite(d) & np.isfinite(g), out, np.nan)
 
     def describe(self) -> str:
@@ -117,7 +156,16 @@ class ErrorModel:
             f"{self.n} held-out readings, residual RMS {self.rms:.3g}): sigma^2 = a(d) + b(d) |grad|^2 of the distance "
             f"d to the nearest reading ({self.distance_m[0]:.0f} .. {self.distance_m[-1]:.0f} m: sqrt(a) "
             f"{np.sqrt(self.a[0]):.3g} .. {np.sqrt(self.a[-1]):.3g}, sqrt(b) {np.sqrt(self.b[0]):.3g} .. "
-            f"{np.sqrt(self.b[-1]):.3g} m), times {self.inflation:g} for what one line set cannot see"
+            f"{np.sqrt(self.b[-1]):.3g} m), "
+            + (
+                f"plus, in quadrature, the between-line-set error at {self.between_points} crossovers of "
+                f"{self.between_lines} lines not gridded: {np.sqrt(self.between_var):.3g} and "
+                f"{self.between_position_m:.3g} m x |grad|; the misfit along those lines is correlated over "
+                f"{self.between_correlation_m:.0f} m (cross-validation: {self.correlation_m:.0f} m; the map states "
+                f"the larger)"
+                if self.between_lines
+                else f"times {self.inflation:g} for what one line set cannot see (no crossing lines to measure it)"
+            )
         )
 
     def as_metadata(self) -> dict[str, object]:
@@ -134,6 +182,16 @@ class ErrorModel:
             "sqrt_b_m": [round(float(np.sqrt(v)), 6) for v in self.b],
             "cap": round(self.cap, 6),
             "inflation": self.inflation,
+            "between_lines": {
+                "sigma0": round(float(np.sqrt(self.between_var)), 6),
+                "position_m": round(self.between_position_m, 3),
+                "lines": self.between_lines,
+                "points": self.between_points,
+                "correlation_m": None
+                if not np.isfinite(self.between_correlation_m)
+                else round(self.between_correlation_m, 3),
+            },
+            "stated_correlation_m": round(self.stated_correlation_m, 3),
             "correlation_m": round(self.correlation_m, 3),
             "correlation_lags_m": [round(float(v), 3) for v in self.correlation_lags_m],
             "correlation": [round(float(v), 4) for v in self.correlation],
@@ -217,6 +275,42 @@ def fit_distance_model(
     return c[keep], a_fit[keep], b_fit[keep]
 
 
+#: crossovers needed (at least) for the between-line-set term, and lines with at least this many crossovers each
+MIN_CROSSOVERS = 2 * MIN_PER_BIN
+MIN_CROSSOVERS_PER_LINE = 10
+
+
+def fit_between_lines(
+    residual: FloatArray, line: NDArray[np.int64], cv_variance: FloatArray, gradient: FloatArray
+) -> tuple[float, float, int, int] | None:
+    """The between-line-set term (module docstring, "Crossovers") from crossover misfits ``residual`` (map - reading,
+    map unit) of readings on lines ``line``, with the cross-validated error variance ``cv_variance`` (unit^2,
+    uninflated) and the map's gradient magnitude ``gradient`` (unit / m) at them: each line's median misfit (its
+    level) is removed, then ``r^2 - cv_variance = c + p^2 g^2`` is fitted by non-negative least squares. Returns
+    ``(c, p, lines, points)`` (unit^2, m) or None with fewer than :data:`MIN_CROSSOVERS` crossovers on lines with
+    at least :data:`MIN_CROSSOVERS_PER_LINE` each, or fewer than two such lines."""
+    from scipy.optimize import nnls
+
+    ok = np.isfinite(residual) & np.isfinite(cv_variance) & np.isfinite(gradient)
+    r, ln, v, g = residual[ok], np.asarray(line)[ok], cv_variance[ok], gradient[ok]
+    keep = np.zeros(r.size, dtype=bool)
+    rd = np.zeros(r.size)
+    used = 0
+    for lid in np.unique(ln):
+        m = ln == lid
+        if m.sum() < MIN_CROSSOVERS_PER_LINE:
+            continue
+        rd[m] = r[m] - np.median(r[m])
+        keep |= m
+        used += 1
+    if used < 2 or keep.sum() < MIN_CROSSOVERS:
+        return None
+    y = rd[keep] ** 2 - v[keep]
+    gs = max(float(np.std(g[keep])), 1e-300)  # scaled for the solver's conditioning
+    coef, _ = nnls(np.c_[np.ones(keep.sum()), (g[keep] / gs) ** 2], y)
+    return float(coef[0]), float(np.sqrt(coef[1]) / gs), used, int(keep.sum())
+
+
 def correlation_length(
     coords_ne: FloatArray,
     z: FloatArray,
@@ -224,10 +318,13 @@ def correlation_length(
     cell_m: float,
     max_lag_m: float,
     rng: np.random.Generator,
+    monotone: bool = False,
 ) -> tuple[float, FloatArray, FloatArray]:
     """Correlation length (m) of the standardised residuals ``z`` at ``coords_ne`` (module docstring, step 5):
     ``(length, lags, correlation)`` with the zero lag first (correlation 1). ``fold`` gives each residual's fold
-    (pairs are taken within a fold: the errors of one map)."""
+    (pairs are taken within a fold: the errors of one map). ``monotone``: the binned correlation is first made
+    non-increasing in lag (pool-adjacent-violators weighted by the pairs per bin), for few residuals whose binned
+    correlation is noisy (a first crossing of 1/e would then be a crossing of the noise)."""
     from scipy.spatial.distance import pdist
 
     edges = np.geomspace(0.5 * cell_m, max_lag_m, 17)
@@ -263,6 +360,8 @@ def correlation_length(
         return float(max_lag_m), np.zeros(0), np.zeros(0)
     centre = np.r_[0.0, np.sqrt(edges[:-1] * edges[1:])[valid]]
     corr = np.r_[1.0, (num[valid] / den[valid]) / (var_sum / var_n)]
+    if monotone:
+        corr[1:] = -_isotonic(-corr[1:], den[valid].astype(float))
     below = np.flatnonzero(corr < _E_FOLD)
     if below.size == 0:
         return float(max_lag_m), centre, corr

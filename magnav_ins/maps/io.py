@@ -479,7 +479,9 @@ def load_map(
     :func:`magnav_ins.maps.build.grid_survey`: read with ``columns`` / ``geoid_undulation_m``
     (:func:`read_survey`), only the lines of ``line_type`` kept, ``exclude_lines`` and the lines of
     ``exclude_line_type`` left out (:func:`select_lines`); the map carries its cross-validated error layer
-    (:mod:`magnav_ins.maps.error_layer`). ``error_sigma`` (map unit) with ``error_correlation_m`` (m) gives the map
+    (:mod:`magnav_ins.maps.error_layer`). The lines left out by ``line_type`` / ``exclude_line_type`` (e.g. the tie
+    lines of a map gridded from ``LINE``) measure the error between line sets at their crossovers (``grid_survey``'s
+    ``check_lines``: never gridded); ``exclude_lines`` are used for nothing (e.g. the line a study flies). ``error_sigma`` (map unit) with ``error_correlation_m`` (m) gives the map
     a uniform error layer instead (:func:`attach_error_layer`). ``unit``, ``crs``, ``variable``, ``reproject``
     (and ``kind``, ``altitude_m``, ``datum``) go to :func:`read_map` for grid files as downloaded."""
     s = str(spec)
@@ -512,16 +514,24 @@ def load_map(
         survey = read_survey(
             s, kind=kind, geoid_undulation_m=geoid_undulation_m, altitude_m=altitude_m, columns=columns
         )
+        check = None
+        if exclude_lines:  # left out of everything: the grid and the error estimate
+            survey = select_lines(survey, exclude_lines=exclude_lines)
         if line_type is not None or exclude_line_type is not None:
-            survey = select_lines(survey, line_type=line_type, exclude_line_type=exclude_line_type)
+            chosen = select_lines(survey, line_type=line_type, exclude_line_type=exclude_line_type)
+            if survey.line is not None and chosen is not survey:  # the other lines: the error estimate only
+                check = survey.select(~np.isin(survey.line, chosen.line_ids()))
+            survey = chosen
         fmap = grid_survey(
             survey,
             grid_spacing_m,
-            exclude_lines=exclude_lines or (),
             method=method,
             name=Path(s).name,
             error_folds=0 if error_sigma is not None else DEFAULT_FOLDS,
+            check_lines=check,
         )
+        if exclude_lines:
+            fmap.metadata["excluded_lines"] = sorted(int(i) for i in exclude_lines)
         if line_type is not None:
             fmap.metadata["line_type"] = line_type
         if exclude_line_type is not None:

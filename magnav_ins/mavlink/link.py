@@ -16,6 +16,7 @@ import math
 import os
 import select
 import socket
+import struct
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -244,6 +245,23 @@ class TruthMessage:
 
 
 @dataclass(frozen=True)
+class EkfStatusMessage:
+    """EKF_STATUS_REPORT (ArduPilot): ``flags`` (EKF_STATUS_FLAGS bits), and the innovation test ratios EKF3 reports
+    as "variances" (``velocity``, ``pos_horiz``, ``pos_vert``, ``compass``, ``terrain``; 1.0 = at the gate,
+    dimensionless); ``t_rx`` monotonic receive time, s."""
+
+    t_rx: float
+    flags: int
+    velocity: float
+    pos_horiz: float
+    pos_vert: float
+    compass: float
+    terrain: float
+    sysid: int
+    compid: int
+
+
+@dataclass(frozen=True)
 class PressureMessage:
     """SCALED_PRESSURE: ``t`` s on the autopilot clock (``time_boot_ms``), static ``pressure_pa`` Pa (the message
     carries hPa), ``temperature_c`` degC."""
@@ -429,8 +447,13 @@ class MavLink:
         peer_component: int | None = None,
         signing_key: bytes | None = None,
         accept_unsigned: bool = False,
+        record_path: str | os.PathLike[str] | None = None,
     ) -> None:
         self.url = url
+        #: every frame received is appended here as a telemetry log (pymavlink's tlog record: receive time as an
+        #: 8-byte big-endian count of microseconds since the Unix epoch, then the frame), for
+        #: :mod:`.playback`; None: nothing recorded
+        self._record = open(record_path, "ab") if record_path is not None else None  # noqa: SIM115
         self.stats = LinkStats()
         self.peer_system = peer_system
         self.peer_component = peer_component
@@ -468,8 +491,11 @@ class MavLink:
         return conn
 
     def reconnect(self) -> None:
-        """Close and reopen the connection (after link loss on serial/TCP)."""
-        self.close()
+        """Close and reopen the connection (after link loss on serial/TCP); the recording goes on."""
+        try:
+            self._conn.close()
+        except Exception:  # noqa: BLE001 - closing a dead link must not raise
+            pass
         self._conn = self._open()
 
     def close(self) -> None:
@@ -477,6 +503,10 @@ class MavLink:
             self._conn.close()
         except Exception:  # noqa: BLE001 - closing a dead link must not raise
             pass
+        rec = getattr(self, "_record", None)
+        if rec is not None:
+            rec.close()
+            self._record = None
 
     # -- receiving ---------------------------------------------------------------------------------------
     def _accept_source(self, msg) -> bool:
@@ -563,6 +593,9 @@ class MavLink:
             if "signature" not in str(getattr(msg, "reason", "")).lower():  # signing drops are counted as such
                 self.stats.bad_data += 1
             return None
+        rec = getattr(self, "_record", None)
+        if rec is not None:
+            rec.write(struct.pack(">Q", int(time.time() * 1e6)) + bytes(msg.get_msgbuf()))
         self.stats.received += 1
         out = self._decode(msg, kind)
         if out is None:
@@ -683,6 +716,11 @@ class MavLink:
                 return TruthMessage(
                     time.monotonic(), math.radians(lat), math.radians(lon), float(msg.alt),
                     np.array([msg.vn, msg.ve, msg.vd], float), float(msg.roll), float(msg.pitch), float(msg.yaw), *src,
+                )  # fmt: skip
+            if kind == "EKF_STATUS_REPORT":
+                return EkfStatusMessage(
+                    time.monotonic(), int(msg.flags), float(msg.velocity_variance), float(msg.pos_horiz_variance),
+                    float(msg.pos_vert_variance), float(msg.compass_variance), float(msg.terrain_alt_variance), *src,
                 )  # fmt: skip
             if kind == "SCALED_PRESSURE":
                 return PressureMessage(msg.time_boot_ms * 1e-3, msg.press_abs * 100.0, msg.temperature * 1e-2, *src)

@@ -299,7 +299,7 @@ def osborne_world(path: str | os.PathLike[str] | None = None, step_m: float = 50
 # ------------------------------------------------------------------------------------------------ a ground station
 class GroundStation:
     """A minimal ground station on the SITL's serial 0 for tests and benchmarks: records the simulated truth
-    (SIM_STATE), the autopilot's EKF position (GLOBAL_POSITION_INT), what its GPS2 receives (GPS2_RAW: the
+    (SIM_STATE), the autopilot's EKF position (GLOBAL_POSITION_INT) and status (EKF_STATUS_REPORT), what its GPS2 receives (GPS2_RAW: the
     bridge's GPS_INPUT when it feeds GPS2), every STATUSTEXT, the armed state and the flight mode, and sets
     parameters. Times are wall-clock (``time.monotonic``) receive times; positions rad, heights m MSL."""
 
@@ -311,6 +311,8 @@ class GroundStation:
         self.ekf: list[tuple[float, float, float, float]] = []  # t, lat, lon, h_msl
         self.gps: dict[int, list[tuple[float, int, float, float]]] = {0: [], 1: []}  # instance: t, fix, lat, lon
         self.texts: list[tuple[float, int, str]] = []
+        #: EKF_STATUS_REPORT: t, flags, velocity, pos_horiz, pos_vert, compass test ratios ("variances")
+        self.ekf_status: list[tuple[float, int, float, float, float, float]] = []
         self.params: dict[str, float] = {}
         self.armed = False
         self.mode = ""
@@ -324,11 +326,12 @@ class GroundStation:
 
     def request_streams(self) -> None:
         for name, hz in (("SIM_STATE", 10.0), ("GLOBAL_POSITION_INT", 5.0), ("GPS_RAW_INT", 2.0), ("GPS2_RAW", 2.0),
-                         ("EXTENDED_SYS_STATE", 2.0)):  # fmt: skip
+                         ("EXTENDED_SYS_STATE", 2.0), ("EKF_STATUS_REPORT", 2.0)):  # fmt: skip
             self.link.request_message_interval(name, hz, 1, 1)
 
     def pump(self, timeout: float = 0.05) -> None:
         from .link import (
+            EkfStatusMessage,
             GnssMessage,
             Heartbeat,
             LandedStateMessage,
@@ -351,6 +354,8 @@ class GroundStation:
                 log.info("SITL: %s", m.text)
             elif isinstance(m, ParamMessage):
                 self.params[m.name] = m.value
+            elif isinstance(m, EkfStatusMessage):
+                self.ekf_status.append((now, m.flags, m.velocity, m.pos_horiz, m.pos_vert, m.compass))
             elif isinstance(m, LandedStateMessage):
                 self.landed = m.landed
             elif isinstance(m, Heartbeat) and (m.sysid, m.compid) == (1, 1):

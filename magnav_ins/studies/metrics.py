@@ -25,7 +25,16 @@ Definitions (they are what ``metrics.json`` reports; see ``shared/DESIGN.md``):
   growing instead of settling) AND more than ``fraction_of_free`` (0.5) times the free-inertial mean error of the
   same run over the same last quarter (the aiding has lost at least half of its benefit). The free-inertial
   baseline itself is tested against itself, so it "diverges" whenever its error doubles between the quarters.
-  ``divergence_rate`` is the fraction of runs that diverge.
+  ``divergence_rate`` is the fraction of runs that diverge. It is a test of the *error*, as the gravity-matching
+  literature uses it (issue 16's studies compare against Wang's tables with it); it also flags an aided run that
+  simply received no fix late and follows free inertial with an honestly growing covariance.
+* Filter divergence (the estimation-theory sense, Bar-Shalom et al. 2001 sec. 5.4: the error leaves the covariance
+  the filter claims), :func:`is_nees_divergent`: a run diverges when its mean horizontal NEES over the last quarter
+  of the run exceeds :data:`NEES_DIVERGENCE_BOUND`, the 99 % point of chi-square with 2 degrees of freedom (9.21):
+  a consistent filter's NEES is chi-square(2) at each epoch, and its mean over correlated epochs exceeds that point
+  less often than one epoch does, so at most 1 % of consistent runs are flagged, while a run whose error grows
+  with a covariance that grows as fast is not. ``nees_divergence_rate`` is the fraction of the runs with a
+  covariance that diverge so (``null`` without any).
 
 * ``rms_after_first_fix_m``: the ensemble horizontal RMS from each run's first accepted fix on (the samples at or
   after the time the fuser first applied a fix, pooled over the runs that had one; Storms 2009 Figs. 4.12-4.13 plot
@@ -52,6 +61,8 @@ FIX_BIN_EDGES_M = (3.0, 10.0, 20.0)
 FIX_BIN_NAMES = ("lt_3m", "3_to_10m", "10_to_20m", "ge_20m")
 DIVERGENCE_GROWTH = 2.0
 DIVERGENCE_FRACTION_OF_FREE = 0.5
+#: chi-square(2) 99 % point, -2 ln(0.01): the filter-divergence bound on a run's last-quarter mean horizontal NEES
+NEES_DIVERGENCE_BOUND = float(-2.0 * np.log(0.01))
 
 
 def horizontal_errors(lat: ArrayLike, lon: ArrayLike, lat_true: ArrayLike, lon_true: ArrayLike) -> NDArray[np.float64]:
@@ -111,6 +122,14 @@ def is_divergent(
     q = quarter_means(e)
     qf = quarter_means(e_free)
     return bool(q[3] > growth * q[1] and q[3] > fraction_of_free * qf[3])
+
+
+def is_nees_divergent(nees: ArrayLike, bound: float = NEES_DIVERGENCE_BOUND) -> bool | None:
+    """Filter divergence (module docstring): the run's mean horizontal NEES ``nees`` (per sample, NaN without a
+    covariance) over its last quarter exceeds ``bound``; None when the last quarter has no finite NEES."""
+    q = np.array_split(np.asarray(nees, float), 4)[-1] if np.size(nees) >= 4 else np.zeros(0)
+    q = q[np.isfinite(q)]
+    return bool(np.mean(q) > bound) if q.size else None
 
 
 def fix_error_bins(fix_errors_m: ArrayLike) -> dict[str, float]:
@@ -187,6 +206,7 @@ def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[
         "max_horizontal_m": _f(np.max(e_all)) if e_all.size else None,
         "final_horizontal_m": _f(np.sqrt(np.nanmean(final**2))) if np.isfinite(final).any() else None,
         "divergence_rate": float(np.mean([r.divergent for r in runs])) if runs else None,
+        "nees_divergence_rate": _nees_divergence_rate(runs),
         "availability": (issued / attempts) if attempts else None,
         "fix_attempts": int(attempts),
         "fixes_issued": issued,
@@ -200,6 +220,12 @@ def aggregate(runs: list[RunMetrics], matcher: str | None, fusion: str) -> dict[
         "rms_after_first_fix_m": _rms_after_first_fix(runs),
     }
     return out
+
+
+def _nees_divergence_rate(runs: list[RunMetrics]) -> float | None:
+    """``nees_divergence_rate`` (module docstring): over the runs with a last-quarter NEES."""
+    flags = [f for f in (is_nees_divergent(r.nees) for r in runs) if f is not None]
+    return float(np.mean(flags)) if flags else None
 
 
 def _rms_after_first_fix(runs: list[RunMetrics]) -> float | None:

@@ -174,7 +174,9 @@ class LikelihoodMatcher:
     Parameters (SI; field values in the map's unit): ``method`` "ml" | "mlr" | "abl"; ``ratio_threshold`` and
     ``min_distance_m`` (MLR); ``bin_size_m`` and ``peak_threshold`` (ABL); ``demean``, ``difference`` (section
     composition); ``search_window`` and ``window_sigma`` (search window = ``window_sigma`` prior sigmas, at least
-    ``window_floor_m``); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma overriding the map's error layer (0 = from the map: its layer, else the default of :mod:`.map_error`); ``distance_step_m`` re-samples the section every that many metres of
+    ``window_floor_m`` and ``window_floor_cells`` map cells: a window narrower than a cell holds too few nodes for
+    the flat-map test and for the likelihood's peak, which is never much narrower than a cell of a smooth map, to
+    fit in it); ``resolution_m`` scan step (default: the map spacing); ``map_sigma`` map error 1-sigma overriding the map's error layer (0 = from the map: its layer, else the default of :mod:`.map_error`); ``distance_step_m`` re-samples the section every that many metres of
     INS-travelled distance before matching (Shockley's distance-sampled readings; ``None`` = as recorded); ``quantisation``: with the default resolution the scan step is refined (by
     bilinear interpolation) until the RMS map gradient times the step is at most this many reading sigmas, and the
     remaining node error ``|grad|^2 step^2 / 12`` is added to the likelihood variance (0 = native grid only);
@@ -202,6 +204,7 @@ class LikelihoodMatcher:
     search_window: bool = True
     window_sigma: float = 4.0
     window_floor_m: float = 5.0
+    window_floor_cells: float = 0.0
     resolution_m: float | None = None
     map_sigma: float = 0.0
     min_variability: float = 1.0
@@ -233,11 +236,19 @@ class LikelihoodMatcher:
             if not getattr(self, key) > 0:
                 raise ConfigError(f"likelihood matcher '{key}': expected > 0, got {getattr(self, key)!r}")
         if (
-            min(self.min_distance_m, self.map_sigma, self.min_variability, self.peak_threshold, self.min_fix_sigma_m)
+            min(
+                self.min_distance_m,
+                self.map_sigma,
+                self.min_variability,
+                self.peak_threshold,
+                self.min_fix_sigma_m,
+                self.window_floor_cells,
+            )
             < 0
         ):
             raise ConfigError(
-                "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m >= 0"
+                "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m, "
+                "window_floor_cells >= 0"
             )
         if self.level_sigma is not None and not self.level_sigma >= 0:
             raise ConfigError(f"likelihood matcher 'level_sigma': expected >= 0 or None, got {self.level_sigma!r}")
@@ -271,7 +282,8 @@ class LikelihoodMatcher:
         cov = np.asarray(window.cov_ne, dtype=float)
         cov_last = cov[-1] if cov.ndim == 3 else cov
         if self.search_window:
-            half_n, half_e = sigma_window(cov_last, self.window_sigma * grow, self.window_floor_m * grow)
+            floor = max(self.window_floor_m, self.window_floor_cells * spacing_of(fmap, 0.0))
+            half_n, half_e = sigma_window(cov_last, self.window_sigma * grow, floor * grow)
             if not np.isfinite(half_n):
                 return "prior covariance not finite"
         else:
