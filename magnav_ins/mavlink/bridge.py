@@ -365,6 +365,9 @@ class Bridge:
         self.config = config
         self.make_pipeline = make_pipeline
         self.field_model = field_model
+        prepare = getattr(field_model, "prepare", None)
+        if callable(prepare):  # imports and first evaluations here, never on the loop (ScalarAnomalyModel.prepare)
+            prepare()
         self.fmap = fmap
         self.health = BridgeHealth()
         self._clock = clock
