@@ -2,7 +2,7 @@
 is flown, against which maps, with which estimators and set-up) run from the project folder, where
 ``../shared/data`` holds the Rio survey.
 
-    python bench/realdata.py --json [--quick] [--jobs 2] [--seeds N] [--only GROUP,...]
+    python bench/realdata.py --json [--quick] [--jobs 2] [--seeds N] [--only GROUP,...] [--estimators NAME,...]
 
 Prints the per-case and per-group tables (stderr with ``--json``) and, with ``--json``, one line on stdout:
 ``{"groups": {"osborne_tactical": {ESTIMATOR: {...}}, "osborne_navigation": {...}, "rio": {...}}}`` with, per
@@ -34,9 +34,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--only", default=None, help="comma-separated groups to run (default all)")
+    p.add_argument("--estimators", default=None, help="comma-separated estimators to fly (e.g. pmht+ukf; default all)")
     args = p.parse_args(argv)
     only = tuple(args.only.split(",")) if args.only else None
-    res = run_suite(quick=args.quick, seeds=args.seeds, jobs=args.jobs, only=only, rio_survey=RIO_SURVEY)
+    ests = tuple(args.estimators.split(",")) if args.estimators else None
+    res = run_suite(
+        quick=args.quick, seeds=args.seeds, jobs=args.jobs, only=only, rio_survey=RIO_SURVEY, estimators=ests
+    )
     text = report(res) + f" with {args.jobs} jobs"
     print(text, file=sys.stderr if args.json else sys.stdout)
     if args.json:

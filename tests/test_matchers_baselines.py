@@ -294,3 +294,116 @@ def test_pmf_grid_resolves_the_map_under_a_wide_gate():
         nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
     assert np.median(errs) < 12.0, np.round(errs)
     assert np.mean(nees) <= 4.0, np.round(nees, 1)
+
+
+def _pmf_drift_trial(m, fmap, rng, sigma_v, prior_sigma=PS):
+    """A PMF recursion whose INS track drifts systematically: position error ``off0 + u t`` with ``off0`` ~ N(0,
+    prior_sigma^2) and a velocity error ``u`` ~ N(0, sigma_v^2) held over the 30 readings (the track stretched and
+    turned about its start, not a random walk); the INS covariance states both (position ``prior_sigma^2 +
+    sigma_v^2 t^2``, velocity ``sigma_v^2``)."""
+    import dataclasses
+
+    true_ne, v = _track(rng)
+    off0, u = rng.normal(0.0, prior_sigma, 2), rng.normal(0.0, sigma_v, 2)
+    st = None
+    for k in range(T):
+        t = k * DT
+        P = np.eye(15) * 1e-4
+        P[:2, :2] = np.eye(2) * (prior_sigma**2 + (sigma_v * t) ** 2)
+        P[3:5, 3:5] = np.eye(2) * sigma_v**2
+        est = dataclasses.replace(nav_estimate(fmap, t, true_ne[k] + off0 + u * t, v, P[:2, :2]), P=P)
+        st = m.initiate(est) if st is None else m.predict(st, est)
+        lat, lon = latlon(fmap, true_ne[k, 0], true_ne[k, 1])
+        z = fmap.value(lat, lon) + rng.normal(0.0, SIG, 1)
+        st = m.update(st, FieldReadings(np.array([t]), z, SIG, KIND_G), fmap)
+    return m.to_fix(st), true_ne[-1], st
+
+
+@pytest.mark.parametrize(("sigma_v", "min_issued"), [(0.5, 16), (2.0, 4)])
+def test_pmf_stays_consistent_when_the_ins_drifts_systematically(gmap, sigma_v, min_issued):
+    """The INS track drifts by a velocity error held over the recursion (0.5 / 2 m/s: 145 / 580 m over the 290 s
+    recursion, half to twice the map's 300 m correlation length): the issued fixes keep the truth (mean NEES at most
+    4, none beyond 5 sigmas) and take most of the drift off (median error well under the drift). At 2 m/s most
+    recursions are refused by the misfit test (measured: 10 of 15): the drift's allowance through the local
+    gradient fails where the drift exceeds the map's correlation length (a known limit, not hidden)."""
+    m = build_matcher({"kind": "pmf"})
+    rng = np.random.default_rng(5)
+    nees, errs = [], []
+    for _ in range(20):
+        fix, truth, _ = _pmf_drift_trial(m, gmap, rng, sigma_v)
+        if not fix.available:
+            assert fix.reason
+            continue
+        d = local(gmap, fix.lat, fix.lon) - truth
+        nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
+        errs.append(float(np.hypot(*d)))
+    assert len(nees) >= min_issued, len(nees)
+    assert np.mean(nees) <= 4.0 and np.max(nees) <= 25.0, np.round(nees, 1)
+    assert np.median(errs) < 0.5 * sigma_v * DT * (T - 1), np.round(errs)
+
+
+def test_pmf_velocity_sigma_and_drift_bound():
+    """The systematic drift bound: ``S`` adds ``(sigma_v,k-1 + sigma_v,k) dt / 2`` a time update (velocity sigma
+    from the prior's velocity block, m/s), and ``velocity_sigma`` is NaN without a velocity block."""
+    from magnav_ins.aiding.matchers.pmf import velocity_sigma
+    from magnav_ins.core.types import NavEstimate, StateLayout
+
+    fmap = random_field_map((100, 100), 10.0, 100.0, 20.0, np.random.default_rng(1), kind=KIND_G, origin=ORIGIN)
+    P = np.eye(15) * 1e-4
+    P[3, 3], P[4, 4] = 4.0, 2.0  # m^2/s^2: sigma_v = sqrt(3)
+    est = nav_estimate(fmap, 0.0, np.array([500.0, 500.0]), np.array([10.0, 0.0]), np.eye(2) * 100.0)
+    import dataclasses
+
+    est = dataclasses.replace(est, P=P)
+    assert velocity_sigma(est) == pytest.approx(np.sqrt(3.0))
+    no_vel = NavEstimate(est.nav, np.eye(3), StateLayout({"pos": slice(0, 3)}))
+    assert np.isnan(velocity_sigma(no_vel))
+    m = build_matcher({"kind": "pmf"})
+    st = m.initiate(est)
+    P2 = P.copy()
+    P2[3, 3], P2[4, 4] = 6.0, 4.0  # sigma_v = sqrt(5)
+    est2 = dataclasses.replace(est, nav=dataclasses.replace(est.nav, t=10.0), P=P2)
+    st = m.predict(st, est2)
+    assert st.drift == pytest.approx(0.5 * (np.sqrt(3.0) + np.sqrt(5.0)) * 10.0)
+
+
+def test_misfit_threshold_is_the_chi_square_quantile():
+    from scipy.stats import chi2
+
+    from magnav_ins.aiding.matchers._batch import misfit_threshold
+
+    assert misfit_threshold(30, 1e-3) == pytest.approx(chi2.ppf(0.999, 30) / 30)
+    assert misfit_threshold(30, 1e-3) == pytest.approx(1.99, abs=0.01)
+    assert misfit_threshold(0, 1e-3) == float("inf")
+
+
+@pytest.mark.parametrize("kind", ["tercom", "pmf"])
+def test_misfit_test_refuses_readings_that_disagree_with_the_map(gmap, kind):
+    """Readings twice as noisy as stated (mean chi-square about 4 per reading, as a track that left its gate fits
+    at its best false offset) are refused as "diverged" by the chi-square test at 1e-3 (threshold 1.99 for 30
+    readings; the PMF's default, TERCOM's ``misfit_alpha``; the cut-off of 9 per reading alone lets them through);
+    readings as noisy as stated are not."""
+    cfg = {"kind": kind} if kind == "pmf" else {"kind": kind, "batch": T, "misfit_alpha": 1e-3}
+    m = build_matcher(cfg)
+    refused = {}
+    for scale in (1.0, 2.0):
+        rng = np.random.default_rng(9)
+        n = 0
+        for _ in range(6):
+            true_ne, v = _track(rng)
+            lat, lon = latlon(gmap, true_ne[:, 0], true_ne[:, 1])
+            z = gmap.value(lat, lon) + rng.normal(0.0, scale * SIG, T)
+            off = rng.normal(0.0, PS, 2)
+            P = np.eye(2) * PS**2
+            if kind == "pmf":
+                st = None
+                for k in range(T):
+                    est = nav_estimate(gmap, k * DT, true_ne[k] + off, v, P)
+                    st = m.initiate(est) if st is None else m.predict(st, est)
+                    st = m.update(st, FieldReadings(np.array([k * DT]), z[k : k + 1], SIG, KIND_G), gmap)
+                fix = m.to_fix(st)
+            else:
+                fix = m.match(make_window(gmap, DT * np.arange(T), true_ne, z, SIG, KIND_G, off, P, v), gmap)
+            n += fix.reason.startswith("diverged")
+        refused[scale] = n
+    assert refused[1.0] <= 1 and refused[2.0] >= 5, refused

@@ -66,3 +66,13 @@ def test_median_run_rms_is_the_median_of_each_runs_own_rms():
     ]
     assert suite.median_run_rms(runs) == pytest.approx(np.sqrt(12.5))
     assert suite.median_run_rms(runs[3:]) is None
+
+
+def test_suite_flies_only_the_estimators_asked_for(monkeypatch, tmp_path):
+    case = suite.Case("osborne_tactical", suite.OSBORNE_SURVEY, suite.OSBORNE_MAP, 10152, 65.0, "tactical",
+                      trajectory_keys=(("duration_s", 60.0),))  # fmt: skip
+    res = suite.run_suite(seeds=1, cases=[case], estimators=("pmht+ukf",), rio_survey=tmp_path / "absent.csv.xz")
+    assert res.runs == 1 and list(res.groups["osborne_tactical"]) == ["pmht+ukf"]
+    assert res.groups["rio"] == {"skipped": "no case"}
+    with pytest.raises(ConfigError, match="unknown suite estimator"):
+        suite.run_suite(estimators=("pmht",))

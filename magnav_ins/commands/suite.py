@@ -28,6 +28,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--rio", type=Path, default=RIO_SURVEY_DEFAULT, help=f"the Rio survey (default {RIO_SURVEY_DEFAULT})"
     )
+    p.add_argument("--estimators", default=None, help="comma-separated estimators to fly (e.g. pmht+ukf; default all)")
     p.add_argument("--json", action="store_true", help="print the group figures as one JSON line")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=handle)
@@ -44,8 +45,9 @@ def handle(args: argparse.Namespace) -> int:
     asked = (only is not None and "rio" in only) or Path(args.rio) != RIO_SURVEY_DEFAULT
     if asked and not Path(args.rio).is_file():  # asked for by name: not skipped in silence ("0 cases, 0 runs")
         raise ConfigError(f"--rio {args.rio}: no such file (the Rio survey lives in ../shared/data beside the project)")
+    ests = tuple(e.strip() for e in args.estimators.split(",") if e.strip()) if args.estimators else None
     res = run_suite(quick=args.quick, seeds=args.seeds, jobs=args.jobs, only=only, rio_survey=args.rio,
-                    quiet=args.quiet or args.json)  # fmt: skip
+                    quiet=args.quiet or args.json, estimators=ests)  # fmt: skip
     text = report(res)
     if args.json:
         print(text, file=sys.stderr)

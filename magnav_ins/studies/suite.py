@@ -190,10 +190,11 @@ class SuiteModel:
     cases: tuple[Case, ...]
     seeds: int = 1
     name: str = "realdata suite"
+    estimators: tuple[dict[str, Any], ...] = ESTIMATORS
     _models: dict[int, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def estimator_names(self) -> tuple[str, ...]:
-        return (*(e["name"] for e in ESTIMATORS), FREE_INERTIAL)
+        return (*(e["name"] for e in self.estimators), FREE_INERTIAL)
 
     def case_of(self, index: int) -> Case:
         return self.cases[index // self.seeds]
@@ -204,7 +205,7 @@ class SuiteModel:
         index = int(seed.spawn_key[-1])
         k = index // self.seeds
         if k not in self._models:  # a worker keeps the models of its cases (truth and map memoised by model.py)
-            self._models[k] = PipelineModel(self.cases[k].scenario(), max_samples=OUTPUT_SAMPLES)
+            self._models[k] = PipelineModel(self.cases[k].scenario(self.estimators), max_samples=OUTPUT_SAMPLES)
         return self._models[k].run(seed)
 
 
@@ -217,15 +218,17 @@ def median_run_rms(runs: list[Any]) -> float | None:
     return float(np.median(per_run)) if per_run else None
 
 
-def pooled(summaries: list[RunSummary]) -> dict[str, dict[str, Any]]:
+def pooled(
+    summaries: list[RunSummary], estimators: tuple[dict[str, Any], ...] = ESTIMATORS
+) -> dict[str, dict[str, Any]]:
     """Each estimator's figures (:data:`KEYS`) over ``summaries`` (runs of any cases), with ``runs``, the median
     of the runs' RMS (:func:`median_run_rms`) as ``median_run_rms_horizontal_m`` and the free-inertial baseline's
-    RMS as ``free_rms_horizontal_m``."""
+    RMS as ``free_rms_horizontal_m``; ``estimators`` the ones the runs flew."""
     from . import metrics as M
 
     free = M.aggregate([s.estimators[FREE_INERTIAL].metrics for s in summaries], None, FREE_INERTIAL)
     out: dict[str, dict[str, Any]] = {}
-    for name in (e["name"] for e in ESTIMATORS):
+    for name in (e["name"] for e in estimators):
         es = [s.estimators[name] for s in summaries]
         m = M.aggregate([e.metrics for e in es], es[0].matcher, es[0].fusion)
         out[name] = {
@@ -257,10 +260,19 @@ def run_suite(
     rio_survey: Path = RIO_SURVEY_DEFAULT,
     scheduler: Any = None,
     quiet: bool = True,
+    estimators: tuple[str, ...] | None = None,
+    cases: list[Case] | None = None,
 ) -> SuiteResult:
-    """Run the suite (module docstring); ``only`` limits it to some groups."""
+    """Run the suite (module docstring); ``only`` limits it to some groups, ``estimators`` to some of
+    :data:`ESTIMATORS` (by name; the others are not flown, their settings unchanged); ``cases`` replaces the
+    suite's own cases (e.g. those used for no choice, as the README's verification table)."""
     if seeds < 1:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
+    known = [e["name"] for e in ESTIMATORS]
+    bad = [e for e in (estimators or ()) if e not in known]
+    if bad:
+        raise ConfigError(f"unknown suite estimator(s) {bad}; expected some of {', '.join(known)}")
+    ests = tuple(e for e in ESTIMATORS if not estimators or e["name"] in estimators)
     wanted = tuple(GROUPS if not only else only)
     unknown = [g for g in wanted if g not in GROUPS]
     if unknown:
@@ -268,25 +280,28 @@ def run_suite(
     from .runner import execute
 
     t0 = time.perf_counter()
-    cases = [c for c in osborne_cases(quick) if c.group in wanted]
     skipped: dict[str, str] = {}
-    if "rio" in wanted:
-        rio, why = rio_cases(Path(rio_survey), quick)
-        cases += rio
-        if why:
-            skipped["rio"] = why
+    if cases is not None:
+        cases = [c for c in cases if c.group in wanted]
+    else:
+        cases = [c for c in osborne_cases(quick) if c.group in wanted]
+        if "rio" in wanted:
+            rio, why = rio_cases(Path(rio_survey), quick)
+            cases += rio
+            if why:
+                skipped["rio"] = why
     for g in GROUPS:
         if g not in wanted:
             skipped[g] = "not asked for"
-    model = SuiteModel(tuple(cases), seeds)
+    model = SuiteModel(tuple(cases), seeds, estimators=ests)
     summaries = execute(model, len(cases) * seeds, 0, jobs=jobs, scheduler=scheduler, quiet=quiet) if cases else []
     per_case = [
-        (c, pooled(summaries[k * seeds : (k + 1) * seeds])) for k, c in enumerate(cases)
+        (c, pooled(summaries[k * seeds : (k + 1) * seeds], ests)) for k, c in enumerate(cases)
     ]  # runs are returned in order
     groups: dict[str, Any] = {}
     for g in GROUPS:
         runs = [s for k, c in enumerate(cases) if c.group == g for s in summaries[k * seeds : (k + 1) * seeds]]
-        groups[g] = pooled(runs) if runs else {"skipped": skipped.get(g, "no case")}
+        groups[g] = pooled(runs, ests) if runs else {"skipped": skipped.get(g, "no case")}
     return SuiteResult(groups, per_case, time.perf_counter() - t0, len(summaries))
 
 

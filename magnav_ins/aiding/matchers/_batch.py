@@ -208,6 +208,17 @@ def local_gradient2(frame: WorkFrame, n: FloatArray, e: FloatArray, h: float) ->
     return np.nan_to_num(g2)
 
 
+def misfit_threshold(n: int, alpha: float) -> float:
+    """Mean normalised squared misfit per reading above which ``n`` readings disagree with the map at false-alarm
+    rate ``alpha``: ``chi2_{1-alpha}(n) / n`` (chi-square with ``n`` degrees of freedom; the fitted offset's two
+    are not taken off, which makes the test slightly lenient). ``inf`` for ``n < 1``."""
+    from scipy.stats import chi2
+
+    if n < 1:
+        return float("inf")
+    return float(chi2.ppf(1.0 - float(alpha), int(n)) / int(n))
+
+
 #: a rival peak counts when its likelihood density is at least this fraction of the best one (``rival_cover``)
 RIVAL_PEAK_RATIO = 0.01
 
