@@ -294,3 +294,30 @@ def test_the_first_reading_imports_nothing_and_does_not_stall_the_loop():
     assert r["new"] == [], r["new"][:10]
     assert r["s"] < 0.3, r["s"]  # an output every 0.1 s; generous for a loaded 2-core machine
     assert math.isfinite(r["value"]) and abs(r["value"]) < 20000.0  # |B| - IGRF: an anomaly, not a total field
+
+
+def test_the_warm_up_runs_one_full_matcher_window():
+    """The warm-up covers the pipeline's whole matcher window (80 readings by default: its 4 s of readings at 10 Hz
+    ran no scan, so after an install the first scan in flight compiled the matcher's kernels in the worker, holding
+    the interpreter up to 0.26 s at a time), and waits for the background scan."""
+    from magnav_ins.commands.bridge import DEFAULT_MATCHER
+    from magnav_ins.maps.builtin import load_map
+    from magnav_ins.mavlink.bridge import warm_up
+
+    fmap = load_map("builtin:osborne-magnetic")
+    scans: list[int] = []
+
+    def factory(nav0, sigma_m):  # noqa: ANN001, ANN202
+        pipe = make_online_pipeline(nav0, sigma_m, fmap, grade="autopilot", matcher=DEFAULT_MATCHER, window=80,
+                                    match_every=20, background_matching=True)  # fmt: skip
+        match = pipe.matcher.match
+
+        def spy(win, m):  # noqa: ANN001, ANN202
+            scans.append(len(win.lat))
+            return match(win, m)
+
+        pipe.matcher.match = spy
+        return pipe
+
+    warm_up(factory, fmap, lambda la, lo: float(np.asarray(fmap.value(la, lo)).reshape(-1)[0]))
+    assert scans and scans[0] == 80
