@@ -365,6 +365,9 @@ class Bridge:
         self.config = config
         self.make_pipeline = make_pipeline
         self.field_model = field_model
+        prepare = getattr(field_model, "prepare", None)
+        if callable(prepare):  # imports and first evaluations here, never on the loop (ScalarAnomalyModel.prepare)
+            prepare()
         self.fmap = fmap
         self.health = BridgeHealth()
         self._clock = clock
@@ -1204,7 +1207,11 @@ def warm_up(
 ) -> float:
     """Run ``make_pipeline``'s pipeline over a few seconds of synthetic at-rest IMU (and map readings) at the map's
     centre so that every compiled kernel (strapdown, covariance, matcher scans) is compiled or loaded from numba's
-    cache *before* the bridge connects, not when the autopilot's first IMU sample arrives. Returns the seconds spent.
+    cache *before* the bridge connects, not when the autopilot's first IMU sample arrives; with readings, for at least
+    one full matcher window (the pipeline's ``window`` readings: with 80 and 4 s of readings no scan ran, and on the
+    first run after an install the first scan in flight compiled the matcher's kernels in the worker, 2.2 s holding
+    the interpreter up to 0.26 s at a time, measured; a scan in the background is waited for). Returns the seconds
+    spent.
     A configuration error (unknown matcher, grade, ...) is raised now; anything else is left for the real run to
     report."""
     from ..core.errors import MagnavError
@@ -1216,6 +1223,8 @@ def warm_up(
         lat0, lon0 = _map_centre(fmap)
         nav = NavState(0.0, lat0, lon0, 300.0, np.zeros(3), q_nb_from_euler(0.0, 0.0, 0.0))
         pipe = make_pipeline(nav, 30.0)
+        if value_needed := field_value_at is not None:  # long enough for one full matcher window (one scan)
+            seconds = max(seconds, (int(getattr(pipe, "window", 0) or 0) + 1) * reading_interval_s)
         g = gravity_n(lat0, 300.0)
         accel = np.array([0.0, 0.0, -g[2]])
         gyro = np.array([WGS84_OMEGA_E * math.cos(lat0), 0.0, -WGS84_OMEGA_E * math.sin(lat0)])
@@ -1228,6 +1237,8 @@ def warm_up(
                 pipe.push_reading(t, value)
                 next_r = t + reading_interval_s
         pipe.estimate()
+        if value_needed and hasattr(pipe, "finish_matching"):  # a background scan: its kernels loaded now too
+            pipe.finish_matching(timeout_s=120.0)
     except MagnavError:
         raise
     except Exception as exc:  # noqa: BLE001 - warm-up only; the real run reports its own errors

@@ -36,7 +36,7 @@ class ScalarAnomalyModel:
     ) -> None:
         from collections import deque
 
-        self._igrf_total: Any = None  # the IGRF (ppigrf, and pandas under it: 24 MB), imported at the first reading
+        self._igrf_total: Any = None  # the IGRF (ppigrf, and pandas under it: 24 MB): :meth:`prepare` imports it
         self.date = date
         self.calibration = calibration
         self.refresh_m = refresh_m
@@ -45,6 +45,21 @@ class ScalarAnomalyModel:
         self.offset_min_samples = int(offset_min_samples)
         self._residuals: deque[float] = deque(maxlen=int(offset_window))
         self._established = False
+
+    def prepare(self) -> float:
+        """Import the IGRF (ppigrf and pandas under it: 325 modules, 0.3-2 s on a loaded 2-core machine) and evaluate
+        it once, so that the first reading costs what every other does (15-20 ms when the IGRF is recomputed). The
+        bridge calls this before its loop runs: imported at the first reading, it stalled the loop right after the INS
+        started (0.8-2.1 s without an output in the SITL flights of the README). Returns the seconds spent."""
+        import time
+
+        t0 = time.perf_counter()
+        if self._igrf_total is None:
+            from ..maps.reference import igrf_total
+
+            self._igrf_total = igrf_total
+        self._igrf_total(0.0, 0.0, 0.0, self.date)  # the date is parsed and the coefficients read now
+        return time.perf_counter() - t0
 
     @property
     def offset_samples(self) -> int:
@@ -55,7 +70,7 @@ class ScalarAnomalyModel:
         if self.calibration is not None:
             m = np.asarray(self.calibration.apply(m), float).reshape(3)  # type: ignore[attr-defined]
         if self._cache is None or _distance_m(self._cache[0], self._cache[1], nav.lat, nav.lon) > self.refresh_m:
-            if self._igrf_total is None:
+            if self._igrf_total is None:  # not prepared (a replay): imported now
                 from ..maps.reference import igrf_total
 
                 self._igrf_total = igrf_total
