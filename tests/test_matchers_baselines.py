@@ -102,20 +102,27 @@ def test_iccp_recovers_a_rotation(gmap):
     assert np.hypot(*d) < 10.0, d
 
 
-@pytest.mark.parametrize("name", sorted(KINDS))
-def test_fix_nees_consistent(gmap, name):
-    cfg, trial = KINDS[name]
-    m = build_matcher(cfg)
-    rng = np.random.default_rng(3)
+def _issued_fix_nees(trial, gmap, n: int, seed: int) -> tuple[list[float], list[float]]:
+    """``n`` trials (``trial(rng) -> (fix, truth)``): the NEES and horizontal error (m) of every issued fix; a
+    refused one must say why."""
+    rng = np.random.default_rng(seed)
     nees, errs = [], []
-    for _ in range(30):
-        fix, truth, _ = trial(m, gmap, rng)
+    for _ in range(n):
+        fix, truth = trial(rng)
         if not fix.available:
             assert fix.reason
             continue
         d = local(gmap, fix.lat, fix.lon) - truth
         nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
         errs.append(float(np.hypot(*d)))
+    return nees, errs
+
+
+@pytest.mark.parametrize("name", sorted(KINDS))
+def test_fix_nees_consistent(gmap, name):
+    cfg, trial = KINDS[name]
+    m = build_matcher(cfg)
+    nees, errs = _issued_fix_nees(lambda rng: trial(m, gmap, rng)[:2], gmap, 30, 3)
     assert len(nees) >= 24, f"{name}: {len(nees)} fixes of 30"
     assert 1.0 <= np.mean(nees) <= 4.0, f"{name}: fix NEES {np.mean(nees):.2f}"
     assert np.median(errs) < 10.0, f"{name}: median error {np.median(errs):.1f} m (prior sigma {PS} m)"
@@ -327,16 +334,7 @@ def test_pmf_stays_consistent_when_the_ins_drifts_systematically(gmap, sigma_v, 
     recursions are refused by the misfit test (measured: 10 of 15): the drift's allowance through the local
     gradient fails where the drift exceeds the map's correlation length (a known limit, not hidden)."""
     m = build_matcher({"kind": "pmf"})
-    rng = np.random.default_rng(5)
-    nees, errs = [], []
-    for _ in range(20):
-        fix, truth, _ = _pmf_drift_trial(m, gmap, rng, sigma_v)
-        if not fix.available:
-            assert fix.reason
-            continue
-        d = local(gmap, fix.lat, fix.lon) - truth
-        nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
-        errs.append(float(np.hypot(*d)))
+    nees, errs = _issued_fix_nees(lambda rng: _pmf_drift_trial(m, gmap, rng, sigma_v)[:2], gmap, 20, 5)
     assert len(nees) >= min_issued, len(nees)
     assert np.mean(nees) <= 4.0 and np.max(nees) <= 25.0, np.round(nees, 1)
     assert np.median(errs) < 0.5 * sigma_v * DT * (T - 1), np.round(errs)
