@@ -361,3 +361,21 @@ def test_particle_ins_gives_no_fix_on_a_plane_with_an_unknown_level():
         issued.append(m.to_fix(st))
     assert not any(f.available for f in issued), [f.reason for f in issued]
     assert all("too little new information" in f.reason for f in issued)
+
+
+def test_misfit_factor_only_above_the_quantile_and_drift_covariance_rank_one_per_axis():
+    from scipy.stats import chi2 as chi2_dist
+
+    from magnav_ins.aiding.matchers.map_error import MISFIT_PROBABILITY, drift_covariance, misfit_factor
+
+    q = float(chi2_dist.ppf(MISFIT_PROBABILITY, 10))
+    assert misfit_factor(0.99 * q, 10) == 1.0 and misfit_factor(0.0, 0) == 1.0
+    assert misfit_factor(1.01 * q, 10) == pytest.approx(1.01 * q / 10)
+    assert misfit_factor(float("nan"), 10) == 1.0
+    jac = np.zeros((3, 1, 2))
+    jac[:, 0, 0] = [1.0, 2.0, 3.0]  # nT/m north
+    jac[:, 0, 1] = [0.0, 1.0, 0.0]  # nT/m east
+    tau = np.array([-2.0, -1.0, 0.0])  # s before the last reading
+    c = drift_covariance(jac, tau, [0.5, 2.0])  # m/s
+    gn, ge = np.array([-1.0, -1.0, 0.0]), np.array([0.0, -2.0, 0.0])
+    assert np.allclose(c, np.outer(gn, gn) + np.outer(ge, ge))

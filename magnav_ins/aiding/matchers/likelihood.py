@@ -73,7 +73,6 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from scipy.special import gammaincinv
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
@@ -94,7 +93,9 @@ from ._local import (
 from .map_error import (
     LevelModel,
     MapErrorModel,
+    drift_covariance,
     level_fraction,
+    misfit_factor,
     off_map_loglik,
     resolve_level,
     resolve_map_error,
@@ -628,17 +629,14 @@ class LikelihoodMatcher:
         sigma[np.diag_indices(k)] += node_var
         sigma += lv  # the level offset, sigma_b^2 1 1' (module docstring)
         if sec.drift_mps is not None and sec.tau is not None and sec.tau.size == k:
-            for a in range(2):  # INS drift over the section: delta p_k = dv (t_k - t_K), rank one per axis
-                g = jac[:, :, a].sum(axis=1) * sec.tau * float(sec.drift_mps[a])
-                sigma += np.outer(g, g)
+            sigma += drift_covariance(jac, sec.tau, sec.drift_mps)  # INS drift over the section
         tr = section_transform(k, self.demean, self.difference, sec.level_frac)
         kappa, topup = temperature_and_topup(jac, sigma, surf.sigma2, tr)
         resid = sec.z - m0
         phi = 1.0
         if np.all(np.isfinite(resid)):
             chi2, dof = whitened_misfit(resid, sigma, tr)
-            if dof > 0 and chi2 > float(2.0 * gammaincinv(dof / 2.0, MISFIT_PROBABILITY)):  # chi2.ppf's formula
-                phi = chi2 / dof
+            phi = misfit_factor(chi2, dof)
         return float(kappa * phi), topup * phi
 
     def _overlap_factor(self, surf: Surface) -> float:
@@ -670,10 +668,6 @@ def _flat_sigma2(surf: Surface, difference: bool) -> float:
     k = 2.0 if (difference and sec.dn.size > 1) else 1.0
     return max(float(surf.sigma2) - k * map_var, k * sec.sigma_sensor**2)
 
-
-#: the section's misfit at the fix scales the covariance only when its chi-square exceeds this quantile (a model
-#: that under-states the residuals, not a chance fluctuation of a right one)
-MISFIT_PROBABILITY = 0.99
 
 #: a peak's region: where the (tempered) log-likelihood is within this of its maximum, the 99.9 % region of a
 #: 2-D Gaussian (chi-square 2 dof quantile 13.8, halved)

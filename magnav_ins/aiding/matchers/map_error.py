@@ -55,6 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import gammaincinv
 
 from ...core.protocols import FieldMap
 
@@ -337,6 +338,33 @@ def whitened_misfit(residual: ArrayLike, sigma: ArrayLike, transform: ArrayLike 
     proj = v[:, keep].T @ (t @ r)  # (rank, c)
     chi2 = float(np.sum(proj**2 / w[keep][:, None]))
     return chi2, int(keep.sum() * r.shape[1]) - 2
+
+
+#: a section's misfit scales its covariance only when its chi-square exceeds this quantile (a model that
+#: under-states the residuals, not a chance fluctuation of a right one); shared by every matcher
+MISFIT_PROBABILITY = 0.99
+
+
+def misfit_factor(chi2: float, dof: float) -> float:
+    """``chi2 / dof`` when the chi-square ``chi2`` with ``dof`` degrees of freedom exceeds its
+    :data:`MISFIT_PROBABILITY` quantile (the readings misfit by more than the model allows: the covariance is to
+    grow by that factor), else 1."""
+    if dof > 0 and np.isfinite(chi2) and chi2 > float(2.0 * gammaincinv(dof / 2.0, MISFIT_PROBABILITY)):  # chi2.ppf
+        return float(chi2 / dof)
+    return 1.0
+
+
+def drift_covariance(jac: ArrayLike, tau: ArrayLike, drift_mps: ArrayLike) -> FloatArray:
+    """Covariance (K, K) of a section's readings from the INS's velocity drift over it: ``delta p_k = dv (t_k - t_K)``
+    per axis, rank one per axis, ``sum_a g_a g_a'`` with ``g_a = (sum_c jac[:, c, a]) tau drift_mps[a]``; ``jac``
+    (K, c, 2) field per metre, ``tau`` (K,) s the reading times less the last's, ``drift_mps`` (2,) m/s 1-sigma."""
+    j = np.asarray(jac, dtype=float)
+    t = np.asarray(tau, dtype=float)
+    out = np.zeros((j.shape[0], j.shape[0]))
+    for a in range(2):
+        g = j[:, :, a].sum(axis=1) * t * float(np.asarray(drift_mps, dtype=float)[a])
+        out += np.outer(g, g)
+    return out
 
 
 # ------------------------------------------------------------------------------------------------ off the map

@@ -92,13 +92,12 @@ from typing import Any
 import numba as nb
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import gammaincinv
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ._local import LocalFrame, feature_variability, map_components, sample_map
-from .map_error import INTEGRAL_SCALE, MapErrorModel, markov_coefficient, resolve_map_error
+from .map_error import INTEGRAL_SCALE, MapErrorModel, markov_coefficient, misfit_factor, resolve_map_error
 
 FloatArray = NDArray[np.float64]
 
@@ -112,8 +111,6 @@ _PRIOR_CONSISTENCY_CHI2 = 13.8155
 #: ``resample_threshold``): a likelihood applied at every prediction would otherwise, resampled each time, wear the
 #: cloud down to a few particles between readings
 _ROAD_RESAMPLE = 0.5
-#: the readings' forecast check scales an increment's covariance only above this chi-square quantile
-MISFIT_PROBABILITY = 0.99
 
 
 @dataclass
@@ -553,8 +550,7 @@ class ParticleFilter:
         z = r @ (ci @ mean - np.linalg.solve(p0, mu0))
         n_nis = float(state.extra.get("nis_n", 0.0))
         nis = float(state.extra.get("nis_sum", 0.0))
-        if n_nis > 0 and nis > float(2.0 * gammaincinv(n_nis / 2.0, MISFIT_PROBABILITY)):  # chi2.ppf's formula
-            r = r * (nis / n_nis)  # the readings missed their forecasts by more than the model allows
+        r = r * misfit_factor(nis, n_nis)  # the readings missed their forecasts by more than the model allows
         r = _cramer_rao_floor(r, _fisher_bound(state.fisher, self.level_sigma is None))
         sig = float(np.sqrt(np.linalg.eigvalsh(r)[-1]))
         max_sig = (

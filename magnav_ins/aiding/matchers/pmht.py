@@ -129,7 +129,6 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from scipy.special import gammaincinv
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
@@ -139,6 +138,8 @@ from ._batch import RIVAL_PEAK_RATIO, adds_information, information_refusal, rea
 from ._local import WorkFrame, make_frame, map_components, sigma_window, spacing_of, window_axes
 from .likelihood import ins_drift_rate
 from .map_error import (
+    drift_covariance,
+    misfit_factor,
     resolve_level,
     resolve_map_error,
     section_covariance,
@@ -401,8 +402,6 @@ def _loewner_max(A: FloatArray, B: FloatArray, big: float, information: bool = F
 #: the batch is run again on the readings less their estimated level when that level exceeds this many reading
 #: sigmas ``s`` (module docstring, "Level offset")
 LEVEL_REPASS = 0.25
-#: the readings' misfit along the estimated track scales the Cramer-Rao floor only above this chi-square quantile
-MISFIT_PROBABILITY = 0.99
 #: a direction whose readings add less than this share of the gate-posterior's information is not extrapolated
 #: away from the INS by the de-prior (:meth:`PMHTMatcher._deprior_estimate`): at most 50 x the variance
 DEPRIOR_MIN_RATIO = 0.02
@@ -793,10 +792,7 @@ class PMHTMatcher:
         si = np.linalg.inv(sig)
         J = np.einsum("tci,ts,scj->ij", G, si, G)
         chi2, dof = whitened_misfit(resid, sig)
-        if (
-            dof > 0 and np.isfinite(chi2) and chi2 > float(2.0 * gammaincinv(dof / 2.0, MISFIT_PROBABILITY))
-        ):  # chi2.ppf's formula
-            J = J * dof / chi2
+        J = J / misfit_factor(chi2, dof)
         return 0.5 * (J + J.T)
 
     def _ambiguity(
@@ -911,9 +907,7 @@ class PMHTMatcher:
         sigma[np.diag_indices(k)] += g2[idx] * cell2
         sigma += lv
         r2 = rel_drift[idx] ** 2
-        for a in range(2):  # the INS's deformation within the batch: delta p_t = dv (t - t_T), rank one per axis
-            g = jac[:, :, a].sum(axis=1) * tau[idx] * float(drift_mps[a])
-            sigma += np.outer(g, g)
+        sigma += drift_covariance(jac, tau[idx], drift_mps)  # the INS's deformation within the batch
         assumed = np.diag(s2 + g2[idx] * (cell2 + r2)) + lv
         try:
             tr = np.linalg.inv(np.linalg.cholesky(assumed))  # T' T = A^-1
@@ -921,9 +915,7 @@ class PMHTMatcher:
             return 1.0, np.zeros((2, 2))
         temp, topup = temperature_and_topup(jac, sigma, 1.0, tr)
         chi2, dof = whitened_misfit(resid, sigma)
-        phi = 1.0
-        if dof > 0 and np.isfinite(chi2) and chi2 > float(2.0 * gammaincinv(dof / 2.0, MISFIT_PROBABILITY)):
-            phi = chi2 / dof
+        phi = misfit_factor(chi2, dof)
         return float(temp * phi), topup * phi
 
     def _ambiguity_cov(self, res: PMHTResult, k: int) -> tuple[FloatArray, float] | None:
