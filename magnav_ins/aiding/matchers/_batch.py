@@ -240,28 +240,43 @@ def rival_cover(
     The batch's registered track ``y`` (T, 2) frame m (readings ``z`` (T, c), variances ``v`` (T,) map unit^2) is
     translated by every offset ``d - d_fix`` of a regular grid over the gate (half-widths ``half`` m about the INS
     position, spacing about ``step`` m, at most ``max_offsets`` nodes; ``d_fix`` (2,) m the fix's own offset from
-    the INS) and its Gaussian likelihood ``prod_t N(z_t; m(y_t + d - d_fix), v_t)`` evaluated. Rivals are the
-    likelihood's local maxima (3 x 3) at least ``min_separation_m`` from the fix holding at least ``peak_ratio`` of
-    the best density; the cover is their second moment about the fix, each weighted by its share of the peaks'
-    density (the fix's peak, the best density within ``min_separation_m`` of it, included): bayes_grid's
-    ``cover_rivals`` for a batch. Zero with no rival. A single best match's linearised covariance holds its own
-    peak's width only; when the batch fits several places of the gate almost equally (a long INS error against a
-    map whose features repeat) the fix may sit on the wrong one, and this term makes its covariance say so."""
-    from scipy import ndimage
-
+    the INS) and its Gaussian likelihood ``prod_t N(z_t; m(y_t + d - d_fix), v_t)`` evaluated; the rivals are then
+    :func:`rival_moment`'s. A single best match's linearised covariance holds its own peak's width only; when the
+    batch fits several places of the gate almost equally (a long INS error against a map whose features repeat)
+    the fix may sit on the wrong one, and this term makes its covariance say so."""
     on, oe, Dn, De = offset_grid(float(half[0]), float(half[1]), step, max_offsets)
-    nn, ne = int(np.unique(on).size), int(np.unique(oe).size)
     K = on.size
     ll = np.zeros(K)
     sh_n, sh_e = on - float(d_fix[0]), oe - float(d_fix[1])
     for t in range(y.shape[0]):
         m = frame.sample(y[t, 0] + sh_n, y[t, 1] + sh_e).reshape(K, -1)
         ll -= 0.5 * np.sum((m - z[t]) ** 2, axis=1) / v[t]
+    return rival_moment(ll, sh_n, sh_e, (Dn, De), min_separation_m, peak_ratio)
+
+
+def rival_moment(
+    ll: FloatArray,
+    dn: FloatArray,
+    de: FloatArray,
+    spacing: tuple[float, float],
+    min_separation_m: float,
+    peak_ratio: float = RIVAL_PEAK_RATIO,
+) -> tuple[FloatArray, int]:
+    """Second moment (2, 2) m^2 about the fix of the rival peaks of a log-likelihood ``ll`` (K,) over a regular
+    offset grid (:func:`offset_grid`'s order; ``dn``, ``de`` (K,) m each node's offset from the fix, ``spacing``
+    (D_n, D_e) m), and how many rivals there are. Rivals are the likelihood's local maxima (3 x 3) at least
+    ``min_separation_m`` from the fix holding at least ``peak_ratio`` of the best density; each is weighted by its
+    share of the peaks' density (the fix's peak, the best density within ``min_separation_m`` of it, included):
+    bayes_grid's ``cover_rivals`` for a batch. Zero with no rival (or no finite likelihood)."""
+    from scipy import ndimage
+
+    nn, ne = int(np.unique(dn).size), int(np.unique(de).size)
+    Dn, De = float(spacing[0]), float(spacing[1])
     ll = np.where(np.isfinite(ll), ll, -np.inf)
     if not np.any(np.isfinite(ll)):
         return np.zeros((2, 2)), 0
     lk = np.exp(ll - np.max(ll)).reshape(nn, ne)
-    dn, de = sh_n.reshape(nn, ne), sh_e.reshape(nn, ne)
+    dn, de = np.asarray(dn, float).reshape(nn, ne), np.asarray(de, float).reshape(nn, ne)
     far = dn**2 + de**2 >= float(min_separation_m) ** 2
     if np.all(far):  # the fix is off the grid's nodes: its peak is the nearest node's neighbourhood
         far = dn**2 + de**2 > np.min(dn**2 + de**2) + Dn**2 + De**2
@@ -274,3 +289,30 @@ def rival_cover(
     w = dens / (dens_fix + dens.sum())
     d = np.column_stack([dn[rivals], de[rivals]])
     return (d * w[:, None]).T @ d, int(rivals.sum())
+
+
+def drift_misfit_variance(fmap: FieldMap, x_ins: FloatArray, rel_drift: FloatArray) -> FloatArray | None:
+    """Variance (T,) map unit^2 a rigid match of the batch must allow each reading for the INS drift relative to
+    the last reading (``rel_drift`` (T,) m, 1 sigma per axis; ``x_ins`` (T, 2) frame m the INS track), through the
+    map's own field (:func:`.map_error.field_variogram`), or None for a map that is not a grid.
+
+    Reading ``t`` is displaced by ``delta_t ~ N(0, r_t^2 I)`` from where the rigidly moved track puts it, so its
+    misfit gains ``m(x + delta_t) - m(x)``, of variance ``D_t = E 2 gamma(|delta_t|)`` (the variogram, not the
+    local gradient: the drift may exceed the map's correlation length, where a gradient says nothing). The drift is
+    one velocity error held over the batch, so these misfits are correlated along the track as the field is:
+    ``D_t`` is counted ``b_t = sum_s rho(|x_t - x_s|)`` times (``rho`` the field's correlation, clipped to
+    ``[1, T]``: a diagonal likelihood then gives a common error the information of the correlated block, as
+    :func:`reading_variance` does for the map error). Why (issue 16): with the tactical IMU on QLD West the INS
+    track deforms by 2-10 km over a 30-reading batch on a 0.9 km map; with the local gradient at the best offset
+    the fix covariance of TERCOM's batches whose truth lay in the gate had a NEES of 21 mean (3 runs replayed),
+    with this term and the rival cover 1.5."""
+    from .map_error import field_variogram
+
+    vg = field_variogram(fmap)
+    if vg is None:
+        return None
+    x = np.asarray(x_ins, float)
+    D = vg.drift_variance(np.asarray(rel_drift, float))
+    sep = np.hypot(x[:, None, 0] - x[None, :, 0], x[:, None, 1] - x[None, :, 1])
+    b = np.clip(np.sum(vg.correlation(sep), axis=1), 1.0, float(len(x)))
+    return D * b

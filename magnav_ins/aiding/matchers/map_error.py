@@ -367,6 +367,80 @@ def drift_covariance(jac: ArrayLike, tau: ArrayLike, drift_mps: ArrayLike) -> Fl
     return out
 
 
+# ------------------------------------------------------------------------------------------------ variogram
+@dataclass(frozen=True)
+class FieldVariogram:
+    """The map's own field as a stationary isotropic process (for a track moved by an unknown drift): semivariogram
+    ``gamma(h) = E |m(x + h) - m(x)|^2 / 2`` (map unit^2, summed over components) at lags ``lags_m`` (m, from 0),
+    and the field's variance ``variance`` (map unit^2, summed over components) over the map."""
+
+    lags_m: FloatArray
+    gamma: FloatArray
+    variance: float
+
+    def at(self, h_m: ArrayLike) -> FloatArray:
+        """``gamma`` at lags ``h_m`` (m; linear between the tabulated lags, the last value beyond them)."""
+        return np.interp(np.abs(np.asarray(h_m, dtype=float)), self.lags_m, self.gamma)
+
+    def correlation(self, h_m: ArrayLike) -> FloatArray:
+        """The field's correlation at lags ``h_m`` (m): ``max(0, 1 - gamma(h) / variance)``."""
+        if not self.variance > 0:
+            return (np.asarray(h_m, dtype=float) == 0.0).astype(float)
+        return np.clip(1.0 - self.at(h_m) / self.variance, 0.0, 1.0)
+
+    def drift_variance(self, sigma_m: ArrayLike) -> FloatArray:
+        """``E |m(x + delta) - m(x)|^2 = E 2 gamma(|delta|)`` (map unit^2) for a horizontal displacement
+        ``delta ~ N(0, sigma^2 I)`` (``sigma_m`` m, any shape): the mean over 32 quantiles of the Rayleigh
+        distribution of ``|delta|``."""
+        s = np.asarray(sigma_m, dtype=float)
+        u = np.sqrt(-2.0 * np.log(1.0 - (np.arange(32) + 0.5) / 32.0))  # unit Rayleigh quantiles
+        return np.mean(2.0 * self.at(s[..., None] * u), axis=-1)
+
+
+def field_variogram(fmap: FieldMap) -> FieldVariogram | None:
+    """The semivariogram of the map's node values (:class:`FieldVariogram`) from the differences of nodes ``k``
+    apart along each grid axis (``k`` = 1 .. half the axis; lags ``k`` times the axis spacing ``spacing_m``, m),
+    the two axes interpolated onto one lag axis and averaged, made non-decreasing (the larger, cautious value where a
+    periodic field's variogram dips). None for a map that is not a grid (no ``values`` /
+    ``spacing_m``). Cached on the map object."""
+    cached = getattr(fmap, "_field_variogram", None)
+    if cached is not None:
+        return cached
+    sp = getattr(fmap, "spacing_m", None)
+    vals = getattr(fmap, "values", None)
+    if sp is None or vals is None:
+        return None
+    sp = np.asarray(sp() if callable(sp) else sp, dtype=float).ravel()
+    v = np.asarray(vals, dtype=float)
+    v = v.reshape(v.shape[0], v.shape[1], -1) if v.ndim >= 2 else None  # type: ignore[assignment]
+    if v is None or sp.size < 2 or not np.all(np.isfinite(sp) & (sp > 0)) or min(v.shape[:2]) < 3:
+        return None
+    curves = []
+    for axis in (0, 1):
+        n = v.shape[axis]
+        ks = np.arange(1, n // 2 + 1)
+        g = [0.0]
+        for k in ks:
+            d = (v[k:] - v[:-k]) if axis == 0 else (v[:, k:] - v[:, :-k])
+            d2 = np.sum(d**2, axis=-1)
+            g.append(0.5 * float(np.nanmean(d2)) if np.any(np.isfinite(d2)) else np.nan)
+        curves.append((np.concatenate([[0.0], ks * sp[axis]]), np.asarray(g)))
+    lags = np.unique(np.concatenate([c[0] for c in curves]))
+    lags = lags[lags <= min(c[0][-1] for c in curves)]
+    gam = np.nanmean([np.interp(lags, c[0], c[1]) for c in curves], axis=0)
+    flat = v.reshape(-1, v.shape[-1])
+    flat = flat[np.all(np.isfinite(flat), axis=1)]
+    var = float(np.sum(np.var(flat, axis=0))) if len(flat) else float("nan")
+    if not (np.all(np.isfinite(gam)) and np.isfinite(var)):
+        return None
+    out = FieldVariogram(lags, np.maximum.accumulate(gam), var)
+    try:
+        object.__setattr__(fmap, "_field_variogram", out)
+    except (AttributeError, TypeError):
+        pass
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ off the map
 def field_statistics(fmap: FieldMap) -> tuple[FloatArray, FloatArray]:
     """Mean and variance per component (map unit, unit^2) of the field over the map's finite values: what a

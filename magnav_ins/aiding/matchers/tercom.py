@@ -38,10 +38,12 @@ from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
 from ._batch import (
     adds_information,
+    drift_misfit_variance,
     information_refusal,
     local_gradient2,
     misfit_threshold,
     offset_grid,
+    rival_moment,
     track_window,
 )
 from ._local import spacing_of
@@ -66,6 +68,8 @@ class TercomMatcher:
     correlation_m: float | None = None
     max_chi2: float = 9.0
     misfit_alpha: float | None = None
+    variogram_drift: bool = True
+    cover_rivals: bool = True
     name: str = "tercom"
 
     def __post_init__(self) -> None:
@@ -113,12 +117,18 @@ class TercomMatcher:
         d = np.array([on[k], oe[k]])
         # likelihood of the offset: variance with the offset cell and the INS drift through the local gradient
         g2 = local_gradient2(tw.frame, tw.x_ins[idx, 0] + d[0], tw.x_ins[idx, 1] + d[1], max(0.5 * min(Dn, De), 0.5))
-        v = tw.s2[idx] + g2 * ((Dn**2 + De**2) / 12.0 + tw.rel_drift[idx] ** 2)
+        drift = drift_misfit_variance(fmap, tw.x_ins[idx], tw.rel_drift[idx]) if self.variogram_drift else None
+        if drift is None:  # not a grid (or switched off): the drift through the local gradient
+            drift = g2 * tw.rel_drift[idx] ** 2
+        v = tw.s2[idx] + g2 * (Dn**2 + De**2) / 12.0 + drift
         ll = np.where(finite, -0.5 * np.sum(resid**2 / v[:, None], axis=0), -np.inf)
         p = np.exp(ll - np.max(ll))
         p /= p.sum()
         a = np.column_stack([on - d[0], oe - d[1]])
         C = np.einsum("k,ki,kj->ij", p, a, a) + np.diag([Dn**2, De**2]) / 12.0
+        if self.cover_rivals:  # the profile fits elsewhere in the gate too: C covers those minima
+            sep = max(3.0 * float(np.sqrt(np.max(np.linalg.eigvalsh(C)))), 4.0 * max(Dn, De))
+            C = C + rival_moment(ll, a[:, 0], a[:, 1], (Dn, De), sep)[0]
         chi2 = float(np.mean(resid[:, k] ** 2 / v))
         prior = tw.cov[-1]
         if not adds_information(C, prior, (hn, he)):  # C holds the offset grid's own (uniform) information
