@@ -397,9 +397,16 @@ class FieldVariogram:
         return np.mean(2.0 * self.at(s[..., None] * u), axis=-1)
 
 
+#: the variogram's lags: this many node counts from 1 to half the axis, geometrically spaced ...
+VARIOGRAM_LAGS = 48
+#: ... over at most about this many grid lines per axis (every k-th line of a larger grid)
+VARIOGRAM_LINES = 512
+
+
 def field_variogram(fmap: FieldMap) -> FieldVariogram | None:
     """The semivariogram of the map's node values (:class:`FieldVariogram`) from the differences of nodes ``k``
-    apart along each grid axis (``k`` = 1 .. half the axis; lags ``k`` times the axis spacing ``spacing_m``, m),
+    apart along each grid axis (:data:`VARIOGRAM_LAGS` values of ``k`` from 1 to half the axis, geometrically
+    spaced, over at most about :data:`VARIOGRAM_LINES` lines; lags ``k`` times the axis spacing ``spacing_m``, m),
     the two axes interpolated onto one lag axis and averaged, made non-decreasing (the larger, cautious value where a
     periodic field's variogram dips). None for a map that is not a grid (no ``values`` /
     ``spacing_m``). Cached on the map object."""
@@ -418,10 +425,12 @@ def field_variogram(fmap: FieldMap) -> FieldVariogram | None:
     curves = []
     for axis in (0, 1):
         n = v.shape[axis]
-        ks = np.arange(1, n // 2 + 1)
+        ks = np.unique(np.round(np.geomspace(1, max(n // 2, 1), VARIOGRAM_LAGS)).astype(int))
+        stride = max(1, v.shape[1 - axis] // VARIOGRAM_LINES)  # a subset of the lines across a large grid
+        sub = v[:, ::stride] if axis == 0 else v[::stride, :]
         g = [0.0]
         for k in ks:
-            d = (v[k:] - v[:-k]) if axis == 0 else (v[:, k:] - v[:, :-k])
+            d = (sub[k:] - sub[:-k]) if axis == 0 else (sub[:, k:] - sub[:, :-k])
             d2 = np.sum(d**2, axis=-1)
             g.append(0.5 * float(np.nanmean(d2)) if np.any(np.isfinite(d2)) else np.nan)
         curves.append((np.concatenate([[0.0], ks * sp[axis]]), np.asarray(g)))
