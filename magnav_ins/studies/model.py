@@ -35,6 +35,34 @@ from .scenario import FREE_INERTIAL, Scenario
 
 _SHARED: dict[str, dict[str, Any]] = {}
 _SHARED_MAX = 2
+#: survey line points (:func:`survey_line_points`) and maps (:func:`_shared_map`) memoised per process by what they
+#: are read from: every run re-reads its readings' survey line, and cases differing only in speed share one map
+_LINE_POINTS: dict[str, dict[str, np.ndarray]] = {}
+_LINE_POINTS_MAX = 4
+_MAPS: dict[str, Any] = {}
+_MAPS_MAX = 2
+
+
+def _file_stamp(path: Any) -> tuple[int, int] | None:
+    """``(mtime_ns, size)`` of a file path (None for ``builtin:`` / ``synthetic:`` names or no such file), so a
+    memo keyed by a path is not served after the file changed."""
+    from pathlib import Path
+
+    try:
+        st = Path(str(path)).stat()
+    except (OSError, ValueError):
+        return None
+    return (st.st_mtime_ns, st.st_size)
+
+
+def _memo(cache: dict[str, Any], limit: int, key: str, make: Any) -> Any:
+    """``cache[key]``, made by ``make()`` on a miss; the oldest entry is dropped beyond ``limit``."""
+    if key not in cache:
+        value = make()
+        if len(cache) >= limit:
+            cache.pop(next(iter(cache)))
+        cache[key] = value
+    return cache[key]
 
 
 def child(ss: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
@@ -190,7 +218,17 @@ def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
 
     One line comes in recorded (along-line) order (``maps.io.read_survey_line``). Several lines are flown one after
     the other in the order given, each in the direction whose start is nearer the previous line's end (a survey
-    aircraft flies adjacent lines back and forth); the legs between lines have no survey points, so no readings."""
+    aircraft flies adjacent lines back and forth); the legs between lines have no survey points, so no readings.
+    Memoised per process (the truth and every run's readings read the same line; parsing the survey file is most
+    of a run's set-up): each call returns its own copies of the arrays."""
+    tr = sc.trajectory
+    key = repr((tr.survey, tr.survey_options(), tr.lines, tr.line, tr.line_type, _file_stamp(tr.survey)))
+    points = _memo(_LINE_POINTS, _LINE_POINTS_MAX, key, lambda: _read_survey_line_points(sc))
+    return {k: v.copy() for k, v in points.items()}
+
+
+def _read_survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
+    """:func:`survey_line_points`, read from the file."""
     from ..core.frames import latlon_to_meters
     from ..maps import io as maps_io
 
@@ -369,8 +407,15 @@ def _shared(sc: Scenario) -> dict[str, Any]:
         truth = build_truth(sc)
         if len(_SHARED) >= _SHARED_MAX:
             _SHARED.pop(next(iter(_SHARED)))
-        _SHARED[key] = {"truth": truth, "imu": ideal_imu(truth), "map": build_map(sc) if sc.map else None}
+        _SHARED[key] = {"truth": truth, "imu": ideal_imu(truth), "map": _shared_map(sc) if sc.map else None}
     return _SHARED[key]
+
+
+def _shared_map(sc: Scenario) -> Any:
+    """:func:`build_map`, memoised per process by the ``[map]`` table (and the file's stamp): scenarios differing
+    only in trajectory or speed (the suite's cases of one line) share one map instead of gridding it again. The map
+    was already shared by every run of a scenario; nothing downstream writes to it (``_with_level`` copies)."""
+    return _memo(_MAPS, _MAPS_MAX, repr((sc.map, _file_stamp(sc.map.path))), lambda: build_map(sc))
 
 
 # ------------------------------------------------------------------------------------------------ per-run draws
