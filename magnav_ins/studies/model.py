@@ -35,10 +35,10 @@ from .scenario import FREE_INERTIAL, Scenario
 
 _SHARED: dict[str, dict[str, Any]] = {}
 _SHARED_MAX = 2
-#: survey line points (:func:`survey_line_points`) and maps (:func:`_shared_map`) memoised per process by what they
-#: are read from: every run re-reads its readings' survey line, and cases differing only in speed share one map
-_LINE_POINTS: dict[str, dict[str, np.ndarray]] = {}
-_LINE_POINTS_MAX = 4
+#: surveys (:func:`_read_survey`) and maps (:func:`_shared_map`) memoised per process by what they are read from:
+#: every run re-reads its readings' survey line, every case its survey, and cases differing only in speed share a map
+_SURVEYS: dict[str, Any] = {}
+_SURVEYS_MAX = 2
 _MAPS: dict[str, Any] = {}
 _MAPS_MAX = 2
 
@@ -218,23 +218,13 @@ def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
 
     One line comes in recorded (along-line) order (``maps.io.read_survey_line``). Several lines are flown one after
     the other in the order given, each in the direction whose start is nearer the previous line's end (a survey
-    aircraft flies adjacent lines back and forth); the legs between lines have no survey points, so no readings.
-    Memoised per process (the truth and every run's readings read the same line; parsing the survey file is most
-    of a run's set-up): each call returns its own copies of the arrays."""
-    tr = sc.trajectory
-    key = repr((tr.survey, tr.survey_options(), tr.lines, tr.line, tr.line_type, _file_stamp(tr.survey)))
-    points = _memo(_LINE_POINTS, _LINE_POINTS_MAX, key, lambda: _read_survey_line_points(sc))
-    return {k: v.copy() for k, v in points.items()}
-
-
-def _read_survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
-    """:func:`survey_line_points`, read from the file."""
+    aircraft flies adjacent lines back and forth); the legs between lines have no survey points, so no readings."""
     from ..core.frames import latlon_to_meters
     from ..maps import io as maps_io
 
     tr = sc.trajectory
     try:
-        survey = maps_io.read_survey(tr.survey, **tr.survey_options())  # type: ignore[arg-type]
+        survey = _read_survey(tr.survey, tr.survey_options())  # type: ignore[arg-type]
     except MagnavError as exc:
         raise ConfigError(f"{sc.where('trajectory.survey')}: {exc}") from None
     ids: tuple[int, ...] = tr.lines or ((tr.line,) if tr.line is not None else ())
@@ -264,6 +254,16 @@ def _read_survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
         p["line"] = np.full(len(p["lat"]), int(ln), dtype=np.int64)
         parts.append(p)
     return {k: np.concatenate([p[k] for p in parts]) for k in ("lat", "lon", "h", "value", "line")}
+
+
+def _read_survey(path: str, options: dict[str, Any]) -> Any:
+    """``maps.io.read_survey(path, **options)``, memoised per process by the path, the options and the file's stamp
+    (parsing a survey file was most of a run's set-up: the truth and every run's readings read their line from it).
+    The :class:`~magnav_ins.maps.survey.Survey` is shared: callers select from it (copies), never write to it."""
+    from ..maps import io as maps_io
+
+    key = repr((path, options, _file_stamp(path)))
+    return _memo(_SURVEYS, _SURVEYS_MAX, key, lambda: maps_io.read_survey(path, **options))
 
 
 #: ``[map] options`` that select :func:`magnav_ins.studies.grids.read_gravity_grid` (a downloaded gravity grid read
