@@ -269,7 +269,7 @@ class GraphFuser:
         if t_end - comp["t"] >= self.gravity_update_s:
             pred = pim.predict(node.state, node.bias)
             C_bL = pred.attitude().matrix().T
-            acc_L = self.frame.gravity_L(pred.position()) - self._g0_L - 2.0 * np.cross(self._w_ie_L, pred.velocity())
+            acc_L = self.frame.gravity_L(pred.position()) - self._g0_L - 2.0 * _cross(self._w_ie_L, pred.velocity())
             comp["df_b"] = C_bL @ acc_L
             comp["dw_b"] = -(C_bL @ self._w_ie_L)
             comp["t"] = t_end
