@@ -415,7 +415,7 @@ def _shared_map(sc: Scenario) -> Any:
     """:func:`build_map`, memoised per process by the ``[map]`` table (and the file's stamp): scenarios differing
     only in trajectory or speed (the suite's cases of one line) share one map instead of gridding it again. The map
     was already shared by every run of a scenario; nothing downstream writes to it (``_with_level`` copies)."""
-    return _memo(_MAPS, _MAPS_MAX, repr((sc.map, _file_stamp(sc.map.path))), lambda: build_map(sc))
+    return _memo(_MAPS, _MAPS_MAX, repr((sc.map, sc.map.options, _file_stamp(sc.map.path))), lambda: build_map(sc))
 
 
 # ------------------------------------------------------------------------------------------------ per-run draws
