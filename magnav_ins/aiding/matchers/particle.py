@@ -94,6 +94,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...core.errors import ConfigError
+from ..gating import chi2_threshold
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ._local import LocalFrame, feature_variability, map_components, sample_map
@@ -152,6 +153,9 @@ class ParticleState:
     readings: int = 0
     p_vv: FloatArray | None = None
     fisher: FloatArray | None = None
+    recent_nis: tuple[tuple[float, float], ...] = ()
+    fault: str = ""
+    faults: int = 0
 
 
 @nb.njit(cache=True)
@@ -323,6 +327,8 @@ class ParticleFilter:
     max_fix_sigma_m: float | None = None
     prior_inflation: float = 1.5
     start_at_rest: bool = False
+    fault_window: int = 20
+    fault_probability: float = 0.999
     name: str = "particle"
 
     def __post_init__(self) -> None:
@@ -345,6 +351,9 @@ class ParticleFilter:
             raise ConfigError("particle: map_sigma and level_sigma must be >= 0")
         if not 0.0 < self.ambiguity_mass <= 1.0:
             raise ConfigError(f"particle 'ambiguity_mass': expected 0 < x <= 1, got {self.ambiguity_mass!r}")
+        if not (isinstance(self.fault_window, int | np.integer) and self.fault_window >= 0):
+            raise ConfigError(f"particle 'fault_window': expected an integer >= 0, got {self.fault_window!r}")
+        chi2_threshold(1, self.fault_probability)  # validates the probability (a clear error)
         if self.measurement == "fix" and self.fix_matcher is None:
             from .likelihood import LikelihoodMatcher
 
@@ -413,7 +422,9 @@ class ParticleFilter:
         """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones.
         After an increment was issued (:meth:`to_fix`), draw a new cloud from ``prior`` instead."""
         if state.issued and self.fix_output == "increment":
-            return self.initiate(prior, state.rng)
+            fresh = self.initiate(prior, state.rng)
+            fresh.fault, fresh.faults = state.fault, state.faults  # a map fault is reported by the next to_fix
+            return fresh
         rng = state.rng
         nav = prior.nav
         dt = float(nav.t) - state.t
@@ -497,11 +508,33 @@ class ParticleFilter:
             return replace(state, reason=f"map lookup failed: {exc}")
         logw = _normalise(st.logw + loglik)
         st = replace(st, logw=logw, reason="", readings=st.readings + 1)
-        return self._maybe_resample(st, rng, force_check=True)
+        return self._maybe_resample(self._fault_check(st), rng, force_check=True)
+
+    def _fault_check(self, state: ParticleState) -> ParticleState:
+        """The map-fault monitor (module docstring, "Map faults"): when the forecast NIS of the last
+        ``fault_window`` readings sums above its chi-square ``fault_probability`` quantile, the cloud is condemned
+        (increment mode: re-drawn from the fuser's estimate at the next prediction, its readings never reported);
+        the fault is recorded in ``fault`` for :meth:`to_fix` to report."""
+        w = self.fault_window
+        if w < 1 or self.fix_output != "increment" or len(state.recent_nis) < w or state.issued:
+            return state
+        chi2 = float(sum(x[0] for x in state.recent_nis[-w:]))
+        dof = int(round(sum(x[1] for x in state.recent_nis[-w:])))
+        thr = chi2_threshold(max(dof, 1), self.fault_probability)
+        if chi2 <= thr:
+            return state
+        reason = (
+            f"map fault: the last {w} readings missed the cloud's forecast (NIS {chi2:.1f} above {thr:.1f}, "
+            f"{dof} dof) at t = {state.t:.0f} s; the cloud's {state.readings} readings were dropped"
+        )
+        return replace(state, fault=reason, faults=state.faults + 1, issued=True)
 
     def to_fix(self, state: ParticleState) -> Fix:
         """The increment since the cloud was drawn, or the cloud's weighted mean and covariance
         (``fix_output``); "no fix" with the reason otherwise (module docstring)."""
+        if state.fault and self.fix_output == "increment":
+            reason, state.fault = state.fault, ""  # reported once
+            return Fix.no_fix(state.t, reason, self.name, state.neff)
         if state.reason and self.fix_output != "posterior":
             return Fix.no_fix(state.t, state.reason, self.name)
         w = np.exp(state.logw)
@@ -676,12 +709,16 @@ class ParticleFilter:
         nis = float(np.sum(nu_bar**2 / var))
         extra = {**state.extra, "nis_sum": state.extra.get("nis_sum", 0.0) + nis}
         extra["nis_n"] = state.extra.get("nis_n", 0.0) + nu.shape[1]
+        keep = self.fault_window - 1  # the monitor's window (the readings before this one)
+        recent = (*(state.recent_nis[-keep:] if keep > 0 else ()), (nis, float(nu.shape[1])))
         lev = lev + k_l * nu
         err = err + k_e * nu
         p_ll_n = p_ll - k_l * k_l * s
         p_le_n = p_le - k_l * k_e * s
         p_ee_n = p_ee - k_e * k_e * s
-        return loglik, replace(state, lev=lev, err=err, p_ll=p_ll_n, p_le=p_le_n, p_ee=p_ee_n, extra=extra)
+        return loglik, replace(
+            state, lev=lev, err=err, p_ll=p_ll_n, p_le=p_le_n, p_ee=p_ee_n, extra=extra, recent_nis=recent
+        )
 
     def _fix_loglik(
         self, state: ParticleState, readings: FieldReadings, fmap: FieldMap
