@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from matcher_scenarios import ORIGIN, error_field, local, particle_trial, section_trial
 
-from magnav_ins.core.errors import ConfigError
 from magnav_ins.aiding.matchers import build_matcher
 from magnav_ins.aiding.matchers import map_error as me
+from magnav_ins.core.errors import ConfigError
 from magnav_ins.maps.synthetic import gaussian_random_field, random_field_map
 
 
