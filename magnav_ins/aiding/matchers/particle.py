@@ -84,19 +84,19 @@ the level projected out, the correlated map error counted by the effective numbe
 weighted moments alone were up to 5x tighter than that bound on a featureless stretch of the Rio tie lines.
 
 Map faults (increment mode; ``fault_window`` readings, default 20, 0 = off; ``fault_probability``, default 0.999).
-Where the map is wrong over a stretch (Rio tie line 9160: 100-340 nT off over ~2 km, against a 20-70 nT error
-layer) the readings pull the cloud to wherever the map happens to fit them, and the increment passes every check
-above: its misfit over all its readings is diluted by the good ones, the wrong place is within the prior's
-99.9 % region, the cloud is unimodal there. While the cloud is still being pulled, though, the readings miss its
-forecast: the predictive NIS of each reading (the cloud's mixture forecast, the statistic of the misfit rule)
-summed over the last ``fault_window`` readings is chi-square with as many degrees of freedom when the model holds
-(it is conservative: the mixture forecast is wider than a Gaussian's, about 0.1 per reading on the Rio and Osborne
-tie lines) and jumped to 2-12 per reading inside 9160's fault zones. Above its ``fault_probability`` quantile the
-cloud is condemned: it is re-drawn from the fuser's estimate at the next prediction (the readings it holds, good
-and bad, are never reported), and the next :meth:`ParticleFilter.to_fix` is a "no fix" whose reason starts with
-"map fault" (``ParticleState.faults`` counts them). It cannot see a fault the cloud fits from the start (a wrong
-place that matches the corrupted readings as well as the right one matches good ones): there the fix stays wrong
-(Rio 9180 and 9220, README "real-data suite").
+Where the map is wrong over a stretch (Rio tie line 9160: up to 500 nT off over ~2 km, 1.7-9x its error layer) the
+readings pull the cloud to wherever the map happens to fit them, and the increment passes every check above: its
+misfit over all its readings is diluted by the good ones, the wrong place is within the prior's 99.9 % region, the
+cloud is unimodal there. While the cloud is still being pulled, though, the readings miss its forecast: the
+predictive NIS of each reading (the cloud's mixture forecast, the statistic of the misfit rule) summed over the last
+``fault_window`` readings is chi-square with as many degrees of freedom when the model holds (it is conservative:
+the mixture forecast is wider than a Gaussian's, 0.01-0.15 per reading on the Rio tie lines) and jumped to 2-26 per
+reading (15 s means) inside 9160's fault zones. Above its ``fault_probability`` quantile the cloud is condemned: it
+is re-drawn from the fuser's estimate at the next prediction (the readings it holds, good and bad, are never
+reported), and the next :meth:`ParticleFilter.to_fix` is a "no fix" whose reason starts with "map fault"
+(``ParticleState.faults`` counts them). It cannot see a fault the cloud fits from the start (a wrong place that
+matches the corrupted readings as well as the right one matches good ones): there the fix stays wrong (Rio 9180 and
+9220, README "real-data suite").
 """
 
 from __future__ import annotations
