@@ -12,6 +12,7 @@ from matcher_scenarios import ORIGIN, error_field, local, particle_trial, sectio
 
 from magnav_ins.aiding.matchers import build_matcher
 from magnav_ins.aiding.matchers import map_error as me
+from magnav_ins.core.errors import ConfigError
 from magnav_ins.maps.synthetic import gaussian_random_field, random_field_map
 
 
@@ -379,3 +380,66 @@ def test_misfit_factor_only_above_the_quantile_and_drift_covariance_rank_one_per
     c = drift_covariance(jac, tau, [0.5, 2.0])  # m/s
     gn, ge = np.array([-1.0, -1.0, 0.0]), np.array([0.0, -2.0, 0.0])
     assert np.allclose(c, np.outer(gn, gn) + np.outer(ge, ge))
+
+
+def _fault_trial(m, ef, rng: np.random.Generator, fault: bool) -> tuple[object, np.ndarray]:
+    """``particle_trial``'s flight (40 readings at 4 m/s, sigma 2 nT, prior 15 m) with, when ``fault``, readings
+    10-29 taken 60 m cross-track of where the aircraft is: over a 80 m stretch the map is wrong by the field's own
+    variation (about 4x its error layer) while elsewhere it fits within its layer, as on Rio tie line 9160."""
+    from matcher_scenarios import KIND_TF, latlon, nav_estimate
+
+    from magnav_ins.core.types import FieldReadings
+
+    head = rng.uniform(0, 2 * np.pi)
+    v = 4.0 * np.array([np.cos(head), np.sin(head)])
+    p = np.array([400.0, 400.0]) + rng.uniform(-50, 50, 2)
+    P = np.eye(2) * 15.0**2
+    off = rng.multivariate_normal([0, 0], P)
+    shift = 15.0 * np.array([-v[1], v[0]])
+    st = m.initiate(nav_estimate(ef.with_layer, 0.0, p + off, v, P), rng)
+    for k in range(1, 41):
+        p = p + v
+        st = m.predict(st, nav_estimate(ef.with_layer, float(k), p + off, v, P))
+        q = p + shift if (fault and 10 <= k < 30) else p
+        z = ef.truth.value(*latlon(ef.truth, q[0], q[1])) + rng.normal(0.0, 2.0, 1)
+        st = m.update(st, FieldReadings(np.array([float(k)]), z, 2.0, KIND_TF), ef.with_layer)
+    return m.to_fix(st), p
+
+
+def test_particle_ins_reports_a_map_fault_stretch_instead_of_a_wrong_fix(particle_maps):
+    """A stretch of readings the map gets wrong pulls the cloud to wherever the map fits them; each fix from it
+    passes every single-fix check (prior consistency, unimodality, misfit over all its readings). The map-fault
+    monitor (the forecast NIS over the last ``fault_window`` readings) condemns such a cloud and reports the fault:
+    without it (``fault_window = 0``) no fault is ever reported and the issued fixes are far off (NEES >> 2)."""
+    ef = particle_maps
+
+    def run(fault_window: int, fault: bool) -> tuple[list[float], list[str]]:
+        m = build_matcher({"kind": "particle_ins", "ins_sigma": 0.2, "fault_window": fault_window})
+        rng = np.random.default_rng(1)
+        nees, reasons = [], []
+        for _ in range(30):
+            fix, truth = _fault_trial(m, ef, rng, fault)
+            if fix.available:
+                d = local(ef.with_layer, fix.lat, fix.lon) - truth
+                nees.append(float(d @ np.linalg.solve(fix.cov_ne, d)))
+            else:
+                reasons.append(fix.reason)
+        return nees, reasons
+
+    off_nees, off_reasons = run(0, True)
+    on_nees, on_reasons = run(20, True)
+    assert not any(r.startswith("map fault") for r in off_reasons)
+    assert np.mean(off_nees) > 20.0, np.mean(off_nees)  # the failure the monitor is for
+    reported = sum(r.startswith("map fault") for r in on_reasons)
+    assert reported >= 15, on_reasons  # most faulty stretches are reported (16 of 30 with seed 1)
+    assert len(on_nees) <= 10 and sum(on_nees) < 0.5 * sum(off_nees), (on_nees, off_nees)
+    clean_nees, clean_reasons = run(20, False)  # false alarms on a map that fits within its layer: rare
+    assert sum(r.startswith("map fault") for r in clean_reasons) <= 2, clean_reasons
+    assert len(clean_nees) >= 25 and np.mean(clean_nees) <= 3.0, clean_nees
+
+
+def test_particle_fault_window_validated():
+    with pytest.raises(ConfigError, match="fault_window"):
+        build_matcher({"kind": "particle_ins", "fault_window": -1})
+    with pytest.raises(ConfigError, match="probability"):
+        build_matcher({"kind": "particle_ins", "fault_probability": 1.5})
