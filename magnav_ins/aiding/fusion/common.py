@@ -577,9 +577,9 @@ class InertialCore:
         self._stepper = StrapdownStepper(init.nav, altitude_hold=altitude_hold)
         self._sums = AttitudeSums()
         self._P = symmetrise(P0, 0.0)
-        #: the fault matrix (n, n): the state error an undetected fault on an accepted fix may have left, as it
-        #: evolves since (:func:`integrity.fault_update`; its horizontal block gives the HPL's fault margin)
-        self._M = np.zeros((n, n))
+        #: the fault stack (k, n, n): bounds on the state error an undetected fault on a recent accepted fix may
+        #: have left, as it evolves since (:func:`integrity.fault_update`; the HPL's fault margin)
+        self._M = np.zeros((1, n, n))
         self._b_a = np.zeros(3)
         self._b_g = np.zeros(3)
         self._s_a = np.zeros(3)  # scale-factor estimates (dimensionless; used with extra.scale_factors only)
@@ -692,15 +692,15 @@ class InertialCore:
                                 sm.Cf_sum, sm.Cw_sum)  # fmt: skip
         held = np.diag(self._P)[list(_HELD)].copy() if self._altitude_hold is not None else None
         self._predict_cov(Phi, Qd)
-        if self._M.any():  # the fault matrix follows the error dynamics without the process noise
+        if len(self._M) > 1 or self._M.any():  # the faults follow the error dynamics without the process noise
             self._M = Phi @ self._M @ Phi.T
         if held is not None:  # the INS holds the altitude: no down error growth (the unstable vertical channel,
             # e-folding every ~570 s, would otherwise blow the covariance up and leak into the horizontal)
             self._P[_HELD, :] = 0.0
             self._P[:, _HELD] = 0.0
             self._P[_HELD, _HELD] = held
-            self._M[_HELD, :] = 0.0
-            self._M[:, _HELD] = 0.0
+            self._M[:, _HELD, :] = 0.0
+            self._M[:, :, _HELD] = 0.0
         if self.extra.map_bias_sigma_m is not None:
             self._b_map = self._b_map * self.extra.decay(dt)
         if self._history is not None:
@@ -786,17 +786,17 @@ class InertialCore:
 
     def _fault_update(self, A: FloatArray, P_prior: FloatArray, P_post: FloatArray, threshold: float) -> None:
         """An accepted update (full covariances before and after it, ``A = I - K H``, the gate's chi-square
-        ``threshold``; inf or 0 for trusted fixes) moves the fault matrix (:func:`integrity.fault_update`)."""
+        ``threshold``; inf or 0 for trusted fixes) moves the fault stack (:func:`integrity.fault_update`)."""
         from .integrity import fault_update
 
         self._M = fault_update(self._M, A, P_prior, P_post, threshold)
 
     def fault_margin(self) -> float:
-        """The HPL's fault-detection margin now (m): ``sqrt(lambda_max)`` of the fault matrix's north/east block
-        (the covariance propagated up to now; :meth:`estimate`)."""
-        from .integrity import lambda_max
+        """The HPL's fault-detection margin now (m): the largest ``sqrt(lambda_max)`` of the fault stack's
+        north/east blocks (:func:`integrity.fault_margin`; as of the last covariance step, :meth:`estimate`)."""
+        from .integrity import fault_margin
 
-        return math.sqrt(lambda_max(self._M[0:2, 0:2]))
+        return fault_margin(self._M)
 
     # ------------------------------------------------------------------------------------------ Fuser API
     def propagate(self, imu: ImuBatch, *, altitude_hold: FloatArray | None = None, attitudes: bool = False):

@@ -45,9 +45,12 @@ Horizontal protection level (:meth:`FaultMonitor.hpl`, m), at ``integrity_risk``
   ``(u^T K b)^2 <= T_gate u^T K S K^T u`` for every direction ``u``), which then evolves as the error itself does
   -- through the INS error transition without the process noise, ``M <- Phi M Phi^T`` (a velocity or tilt error
   the faulty fix left grows into position; the process noise is the fault-free term's), and through each later
-  update, ``M <- A M A^T`` with ``A = I - K H`` (the part of an old error an update leaves). At each fix the
-  larger of the new fault's matrix and the old one's (by their horizontal ``lambda_max``) is kept, and ``m_f =
-  sqrt(lambda_max(M_NE))`` (:func:`fault_update`, passed to :meth:`FaultMonitor.hpl` as ``margin_m``). So the
+  update, ``M <- A M A^T`` with ``A = I - K H`` (the part of an old error an update leaves). Any recent fix may
+  be the faulty one: each of the last :data:`FAULT_MEMORY` accepted fixes keeps its own matrix, older ones are
+  summed into one that bounds each of them, and ``m_f`` is the largest ``sqrt(lambda_max(M_NE))``
+  (:func:`fault_update`, :func:`fault_margin`; passed to :meth:`FaultMonitor.hpl` as ``margin_m``). Keeping only
+  the larger of the old and the new fault at each fix is not enough: the one dropped may grow more later (its
+  velocity part). So the
   margin comes from the information the fixes actually brought, not from the whole covariance: before this (still
   the factor graph's rule, :meth:`FaultMonitor.margin`) the margin at a fix was scaled with the filter's horizontal
   sigma between fixes, process noise included, and on the SITL flights the HPL reached 7.6-10 sigmas.
@@ -131,20 +134,37 @@ def gain_transfer(P_prior: ArrayLike, P_post: ArrayLike) -> FloatArray:
     return A
 
 
-def fault_update(M: ArrayLike, A: ArrayLike, P_prior: ArrayLike, P_post: ArrayLike, threshold: float) -> FloatArray:
-    """The fault matrix (n, n; module docstring) after an accepted update: the earlier fault's, ``A M A^T``
-    (``A = I - K H``), or the new fix's, ``threshold (P- - P+)`` (``threshold`` the gate's chi-square quantile;
-    0 or inf: trusted fixes, no fault), whichever has the larger horizontal ``lambda_max`` (one fault at a time).
+#: faults kept apart in the fault stack (:func:`fault_update`): the last this many accepted fixes
+FAULT_MEMORY = 8
+
+
+def fault_update(F: ArrayLike, A: ArrayLike, P_prior: ArrayLike, P_post: ArrayLike, threshold: float) -> FloatArray:
+    """The fault stack (k, n, n; module docstring) after an accepted update. ``F[0]`` bounds every fault dropped
+    from the stack (their sum), ``F[1:]`` the faults of the last :data:`FAULT_MEMORY` fixes, one each. Every
+    matrix becomes ``A M A^T`` (``A = I - K H``: what the update leaves of an earlier error) and the new fix's
+    ``threshold (P- - P+)`` is pushed (``threshold`` the gate's chi-square quantile; 0 or inf: a trusted fix, no
+    fault); the oldest beyond the memory is added to ``F[0]`` (a sum of PSD matrices bounds each of them).
     ``P_prior``, ``P_post``: full covariances before and after the update."""
     A = np.asarray(A, float)
-    old = A @ np.asarray(M, float) @ A.T
-    old = 0.5 * (old + old.T)
+    F = np.asarray(F, float)
+    out = A @ F @ A.T
+    out = 0.5 * (out + np.swapaxes(out, 1, 2))
     if not (np.isfinite(threshold) and threshold > 0.0):
-        return old
+        return out
     D = np.asarray(P_prior, float) - np.asarray(P_post, float)
     w, V = np.linalg.eigh(0.5 * (D + D.T))
-    new = (V * np.maximum(w, 0.0)) @ V.T * float(threshold)
-    return new if lambda_max(new[0:2, 0:2]) >= lambda_max(old[0:2, 0:2]) else old
+    out = np.concatenate([out, ((V * np.maximum(w, 0.0)) @ V.T * float(threshold))[None]])
+    if len(out) > FAULT_MEMORY + 1:
+        out[0] += out[1]
+        out = np.delete(out, 1, axis=0)
+    return out
+
+
+def fault_margin(F: ArrayLike) -> float:
+    """The fault-detection margin (m) of a fault stack (:func:`fault_update`): the largest ``sqrt(lambda_max)``
+    of its matrices' north/east blocks (one fault at a time)."""
+    F = np.asarray(F, float)
+    return math.sqrt(max((lambda_max(M[0:2, 0:2]) for M in F), default=0.0))
 
 
 def hpl_fault_free(cov_ne: ArrayLike, integrity_risk: float = DEFAULT_INTEGRITY_RISK) -> float:
