@@ -360,7 +360,9 @@ def _bridge_figures(out: dict, summary_path: Path, track_path: Path, truth: np.n
         out["bridge_nees"] = round(float(np.mean((e / np.maximum(sig, 1e-3)) ** 2) / 2.0), 2)
     md = (tw >= t_deny) & (tw <= t_land)
     out["bridge_trusted_fraction_denied"] = round(float(np.mean(trusted[md])), 3) if md.any() else 0.0
-    out["bridge_trusted_min_denied"] = round(float(np.sum(trusted[md]) / 10.0 / 60.0), 1)  # 10 Hz outputs
+    out["bridge_trusted_min_denied"] = (
+        round(float(np.mean(trusted[md]) * (t_land - t_deny) / 60.0), 1) if md.any() else 0.0
+    )
     hpl = tr.hpl_m.to_numpy()
     mh = md & np.isfinite(hpl) & (hpl > 0)
     if mh.any():  # a protection level is a bound: how often the error was above it, trusted or not
