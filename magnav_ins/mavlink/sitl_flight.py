@@ -303,7 +303,8 @@ def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by st
         if gcs is not None:
             gcs.close()
         sitl.stop()
-    if plan.keep:  # for a look afterwards: truth and the autopilot's estimate, ground-station clock (monotonic)
+    if plan.keep:  # for a look afterwards: truth (SIM_STATE with its attitude: :attr:`sitl.GroundStation.truth`) and
+        # the autopilot's estimate, ground-station clock (monotonic)
         np.savez(
             work / "flight.npz",
             truth=truth,
