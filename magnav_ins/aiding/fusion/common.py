@@ -519,8 +519,8 @@ class InertialCore:
     step (Van Loan), then
     :meth:`_predict_cov` (``Phi P Phi^T + Qd`` here; the UKF overrides it with its unscented prediction).
     (:func:`discretize_fast` is error_model's Van Loan formula with a product-only matrix exponential.)
-    At every covariance step a checkpoint (state, covariance, biases, sample count) is kept for ``buffer_s`` s with
-    the raw samples since the oldest one; :meth:`_rewind` restores the last checkpoint before a past time and returns
+    At every covariance step a checkpoint (state, covariance, biases, sample count, fault stack) is kept for
+    ``buffer_s`` s with the raw samples since the oldest one; :meth:`_rewind` restores the last checkpoint before a past time and returns
     the samples to replay, so a late fix is applied at its own time (re-propagation).
 
     Optional states (:class:`ExtraStates`; ``scale_factors``, ``scale_factor_tau_s``, ``map_bias_sigma_m``,
