@@ -21,6 +21,21 @@ def test_ecef_round_trip(rng):
     assert np.max(np.abs(h2 - h)) < 1e-6
 
 
+def test_point_forms_are_the_array_forms_bit_for_bit(rng):
+    """The one-point twins the fusers call per IMU sample (ecef_to_geodetic_point, C_en_point, gravity_n_point)
+    give exactly the numbers of the array functions, not merely close ones (results must not move)."""
+    lat = rng.uniform(-np.pi / 2 + 1e-6, np.pi / 2 - 1e-6, 500)
+    lon = rng.uniform(-np.pi, np.pi, 500)
+    h = rng.uniform(-1e3, 2e4, 500)
+    r = frames.geodetic_to_ecef(lat, lon, h)
+    for k in range(len(lat)):
+        assert [float(v) for v in frames.ecef_to_geodetic_point(*r[k])] == [
+            float(v) for v in frames.ecef_to_geodetic(r[k])
+        ]
+        assert np.array_equal(frames.C_en_point(lat[k], lon[k]), frames.C_en(lat[k], lon[k]))
+        assert np.array_equal(earth.gravity_n_point(lat[k], h[k]), earth.gravity_n(float(lat[k]), float(h[k])))
+
+
 def test_ecef_known_points():
     # equator / prime meridian, and the north pole
     np.testing.assert_allclose(frames.geodetic_to_ecef(0.0, 0.0, 0.0), [frames.WGS84_A, 0, 0], atol=1e-9)

@@ -107,6 +107,21 @@ def _survey_ne(sc):
     return {ln: read_survey_line(sc.trajectory.survey, ln) for ln in sc.trajectory.lines}
 
 
+def test_memoised_survey_and_map_are_not_shared_for_writing():
+    """The parsed survey and the map are memoised per process: a second read parses nothing, and what a caller
+    gets to keep (the line points) is its own copy, so writing to it cannot leak into the next run."""
+    sc = scenario_from_dict(SURVEY)
+    a = Mdl.survey_line_points(sc)
+    before = {k: v.copy() for k, v in a.items()}
+    for v in a.values():
+        v[...] = 0
+    b = Mdl.survey_line_points(sc)
+    assert all(np.array_equal(b[k], before[k]) for k in before)
+    key = repr((sc.trajectory.survey, sc.trajectory.survey_options(), None))
+    assert key in Mdl._SURVEYS  # builtin: no file stamp
+    assert Mdl._shared_map(sc) is Mdl._shared_map(scenario_from_dict({**SURVEY, "name": "other speed"}))
+
+
 def test_several_survey_lines_are_flown_in_order_with_their_own_readings():
     """Two adjacent tie lines flown one after the other: the flight passes over every surveyed point of both, in
     the given order, the second entered from the end nearer the first's end; readings on the lines are the

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from magnav_ins.core.errors import ConfigError
 from magnav_ins.core.frames import meters_to_latlon
 from magnav_ins.core.units import DEG_TO_RAD
 from magnav_ins.studies import runner
@@ -169,6 +170,22 @@ def test_seeds_independent_of_jobs():
     assert _strip(d1) == _strip(d2)
     d3 = runner.run_study(m, runs=5, seed=4, jobs=1)
     assert _strip(d3) != _strip(d1)
+
+
+def test_chunked_runs_same_as_single_runs():
+    """Handing a worker several consecutive runs at once (the suite's runs of one case) changes nothing but where
+    they run: every run in order, with its own seed; a chunk that does not divide the runs is cut short."""
+    m = StandInModel()
+    one = runner.execute(m, 5, 3, jobs=1)
+    for chunk in (2, 5, 7):
+        got = runner.execute(m, 5, 3, jobs=2, chunk=chunk)
+        assert [s.index for s in got] == [0, 1, 2, 3, 4]
+        for a, b in zip(one, got, strict=True):
+            assert np.array_equal(a.t, b.t) and np.array_equal(a.lat_true, b.lat_true)
+            for name in a.estimators:
+                assert np.array_equal(a.estimators[name].err_n, b.estimators[name].err_n)
+    with pytest.raises(ConfigError, match="chunk"):
+        runner.execute(m, 5, 3, jobs=2, chunk=0)
 
 
 def test_seeds_independent_of_dask_cluster():

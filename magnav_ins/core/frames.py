@@ -70,6 +70,31 @@ def ecef_to_geodetic(r_e: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.fl
     return lat, lon, h
 
 
+def ecef_to_geodetic_point(x: float, y: float, z: float) -> tuple[np.float64, np.float64, np.float64]:
+    """:func:`ecef_to_geodetic` of one ECEF point (m): the same operations in the same order on scalars, so the
+    same numbers bit for bit, without the array handling that dominates it for one point (fusers convert every IMU
+    sample)."""
+    x, y, z = np.float64(x), np.float64(y), np.float64(z)
+    lon = np.arctan2(y, x)
+    p = np.hypot(x, y)
+    beta = np.arctan2(z * WGS84_A, p * WGS84_B)
+    lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
+    for _ in range(2):
+        beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
+        lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
+    cl = np.cos(lat)
+    sl = np.sin(lat)
+    h = p * cl + z * sl - WGS84_A * np.sqrt(1.0 - WGS84_E2 * sl * sl)
+    return lat, lon, h
+
+
+def C_en_point(lat: float, lon: float) -> NDArray[np.float64]:
+    """:func:`C_en` at one point (3, 3): the same numbers, without the broadcasting."""
+    sl, cl = np.sin(np.float64(lat)), np.cos(np.float64(lat))
+    so, co = np.sin(np.float64(lon)), np.cos(np.float64(lon))
+    return np.array([[-sl * co, -so, -cl * co], [-sl * so, co, -cl * so], [cl, 0.0, -sl]])
+
+
 def C_en(lat: ArrayLike, lon: ArrayLike) -> NDArray[np.float64]:
     """Matrix projecting NED vectors into ECEF (``x_e = C_en @ x_n``), shape ``(..., 3, 3)``."""
     lat = np.asarray(lat, dtype=float)

@@ -87,6 +87,17 @@ def gravity_n(lat: ArrayLike, h: ArrayLike) -> NDArray[np.float64]:
     return np.stack(np.broadcast_arrays(g_n, np.zeros_like(g_d), g_d), axis=-1)
 
 
+def gravity_n_point(lat: float, h: float) -> NDArray[np.float64]:
+    """:func:`gravity_n` at one point (3,): the same operations in the same order on scalars (``h * h`` is what
+    ``h**2`` of an array computes), so the same numbers bit for bit, without the array handling."""
+    lat, h = np.float64(lat), np.float64(h)
+    s2 = np.sin(lat) ** 2
+    g0 = WGS84_GAMMA_E * (1.0 + WGS84_K * s2) / np.sqrt(1.0 - WGS84_E2 * s2)  # somigliana(lat)
+    g_d = g0 * (1.0 - 2.0 / WGS84_A * (1.0 + WGS84_F + WGS84_M - 2.0 * WGS84_F * s2) * h + 3.0 * (h * h) / WGS84_A**2)
+    g_n = -8.08e-9 * h * np.sin(2.0 * lat)
+    return np.array([g_n, 0.0, g_d])
+
+
 def omega_ie_n(lat: ArrayLike) -> NDArray[np.float64]:
     """Earth rotation rate resolved in NED (rad/s), shape ``(..., 3)``: ``[w cos(lat), 0, -w sin(lat)]``."""
     lat = np.asarray(lat, dtype=float)

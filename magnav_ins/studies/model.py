@@ -35,6 +35,34 @@ from .scenario import FREE_INERTIAL, Scenario
 
 _SHARED: dict[str, dict[str, Any]] = {}
 _SHARED_MAX = 2
+#: surveys (:func:`_read_survey`) and maps (:func:`_shared_map`) memoised per process by what they are read from:
+#: every run re-reads its readings' survey line, every case its survey, and cases differing only in speed share a map
+_SURVEYS: dict[str, Any] = {}
+_SURVEYS_MAX = 2
+_MAPS: dict[str, Any] = {}
+_MAPS_MAX = 2
+
+
+def _file_stamp(path: Any) -> tuple[int, int] | None:
+    """``(mtime_ns, size)`` of a file path (None for ``builtin:`` / ``synthetic:`` names or no such file), so a
+    memo keyed by a path is not served after the file changed."""
+    from pathlib import Path
+
+    try:
+        st = Path(str(path)).stat()
+    except (OSError, ValueError):
+        return None
+    return (st.st_mtime_ns, st.st_size)
+
+
+def _memo(cache: dict[str, Any], limit: int, key: str, make: Any) -> Any:
+    """``cache[key]``, made by ``make()`` on a miss; the oldest entry is dropped beyond ``limit``."""
+    if key not in cache:
+        value = make()
+        if len(cache) >= limit:
+            cache.pop(next(iter(cache)))
+        cache[key] = value
+    return cache[key]
 
 
 def child(ss: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
@@ -196,7 +224,7 @@ def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
 
     tr = sc.trajectory
     try:
-        survey = maps_io.read_survey(tr.survey, **tr.survey_options())  # type: ignore[arg-type]
+        survey = _read_survey(tr.survey, tr.survey_options())  # type: ignore[arg-type]
     except MagnavError as exc:
         raise ConfigError(f"{sc.where('trajectory.survey')}: {exc}") from None
     ids: tuple[int, ...] = tr.lines or ((tr.line,) if tr.line is not None else ())
@@ -226,6 +254,16 @@ def survey_line_points(sc: Scenario) -> dict[str, np.ndarray]:
         p["line"] = np.full(len(p["lat"]), int(ln), dtype=np.int64)
         parts.append(p)
     return {k: np.concatenate([p[k] for p in parts]) for k in ("lat", "lon", "h", "value", "line")}
+
+
+def _read_survey(path: str, options: dict[str, Any]) -> Any:
+    """``maps.io.read_survey(path, **options)``, memoised per process by the path, the options and the file's stamp
+    (parsing a survey file was most of a run's set-up: the truth and every run's readings read their line from it).
+    The :class:`~magnav_ins.maps.survey.Survey` is shared: callers select from it (copies), never write to it."""
+    from ..maps import io as maps_io
+
+    key = repr((path, options, _file_stamp(path)))
+    return _memo(_SURVEYS, _SURVEYS_MAX, key, lambda: maps_io.read_survey(path, **options))
 
 
 #: ``[map] options`` that select :func:`magnav_ins.studies.grids.read_gravity_grid` (a downloaded gravity grid read
@@ -369,8 +407,15 @@ def _shared(sc: Scenario) -> dict[str, Any]:
         truth = build_truth(sc)
         if len(_SHARED) >= _SHARED_MAX:
             _SHARED.pop(next(iter(_SHARED)))
-        _SHARED[key] = {"truth": truth, "imu": ideal_imu(truth), "map": build_map(sc) if sc.map else None}
+        _SHARED[key] = {"truth": truth, "imu": ideal_imu(truth), "map": _shared_map(sc) if sc.map else None}
     return _SHARED[key]
+
+
+def _shared_map(sc: Scenario) -> Any:
+    """:func:`build_map`, memoised per process by the ``[map]`` table (and the file's stamp): scenarios differing
+    only in trajectory or speed (the suite's cases of one line) share one map instead of gridding it again. The map
+    was already shared by every run of a scenario; nothing downstream writes to it (``_with_level`` copies)."""
+    return _memo(_MAPS, _MAPS_MAX, repr((sc.map, sc.map.options, _file_stamp(sc.map.path))), lambda: build_map(sc))
 
 
 # ------------------------------------------------------------------------------------------------ per-run draws

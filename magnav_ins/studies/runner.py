@@ -211,6 +211,13 @@ def _run_task(model: StudyModel, index: int, seed: np.random.SeedSequence, max_s
     return summarise_run(index, out, max_samples, time.perf_counter() - t0)
 
 
+def _run_chunk(
+    model: StudyModel, first: int, seeds: Sequence[np.random.SeedSequence], max_samples: int
+) -> list[RunSummary]:
+    """Runs ``first, first + 1, ...`` one after the other in one worker (module-level so it pickles)."""
+    return [_run_task(model, first + k, ss, max_samples) for k, ss in enumerate(seeds)]
+
+
 # ------------------------------------------------------------------------------------------------ execution
 def run_seeds(seed: int, runs: int) -> list[np.random.SeedSequence]:
     """The per-run seed sequences: ``SeedSequence(seed).spawn(runs)``."""
@@ -225,17 +232,22 @@ def execute(
     scheduler: str | Any | None = None,
     quiet: bool = True,
     max_samples: int = DEFAULT_MAX_SAMPLES,
+    chunk: int = 1,
 ) -> list[RunSummary]:
     """Run ``runs`` Monte Carlo runs of ``model`` and return their summaries in run order.
 
-    ``jobs`` > 1 uses a :class:`~concurrent.futures.ProcessPoolExecutor`; ``scheduler`` (an address
-    ``tcp://HOST:PORT`` or a ``dask.distributed.Client``) runs them on a Dask cluster instead. A progress bar
-    (tqdm) is shown unless ``quiet``.
+    ``jobs`` > 1 uses a :class:`~concurrent.futures.ProcessPoolExecutor`, handing each worker ``chunk``
+    consecutive runs at a time (a model whose consecutive runs share a set-up memoised per process, as the suite's
+    runs of one case, then builds it once, not once per worker; the results do not depend on ``chunk``);
+    ``scheduler`` (an address ``tcp://HOST:PORT`` or a ``dask.distributed.Client``) runs them on a Dask cluster
+    instead. A progress bar (tqdm) is shown unless ``quiet``.
     """
     if runs < 1:
         raise ConfigError(f"runs must be >= 1, got {runs}")
     if jobs < 1:
         raise ConfigError(f"jobs must be >= 1, got {jobs}")
+    if chunk < 1:
+        raise ConfigError(f"chunk must be >= 1, got {chunk}")
     seeds = run_seeds(seed, runs)
     from tqdm.auto import tqdm
 
@@ -249,7 +261,7 @@ def execute(
                 results[i] = _run_task(model, i, ss, max_samples)
                 bar.update(1)
         else:
-            _execute_pool(model, seeds, jobs, max_samples, results, bar.update)
+            _execute_pool(model, seeds, jobs, max_samples, results, bar.update, chunk)
     finally:
         bar.close()
     return [r for r in results if r is not None]
@@ -262,8 +274,9 @@ def _execute_pool(
     max_samples: int,
     results: list[RunSummary | None],
     progress: Callable[[int], Any],
+    chunk: int = 1,
 ) -> None:
-    """The runs in ``jobs`` local worker processes. Workers ignore SIGINT and die with their parent
+    """The runs in ``jobs`` local worker processes, ``chunk`` consecutive runs per task. Workers ignore SIGINT and die with their parent
     (:func:`magnav_ins.core.signals.worker_init`); on any exception here (Ctrl-C, SIGTERM, a failed run) the queued
     runs are cancelled and the workers are terminated at once, not waited for: nothing is left running."""
     import os
@@ -272,10 +285,13 @@ def _execute_pool(
 
     pool = ProcessPoolExecutor(max_workers=jobs, initializer=worker_init, initargs=(os.getpid(),))
     try:
-        futs = {pool.submit(_run_task, model, i, ss, max_samples): i for i, ss in enumerate(seeds)}
+        futs = {
+            pool.submit(_run_chunk, model, i, seeds[i : i + chunk], max_samples): i for i in range(0, len(seeds), chunk)
+        }
         for fut in as_completed(futs):
-            results[futs[fut]] = fut.result()
-            progress(1)
+            done = fut.result()
+            results[futs[fut] : futs[fut] + len(done)] = done
+            progress(len(done))
     except BrokenProcessPool as exc:
         _stop_pool(pool)
         raise RuntimeError(

@@ -294,7 +294,10 @@ def run_suite(
         if g not in wanted:
             skipped[g] = "not asked for"
     model = SuiteModel(tuple(cases), seeds, estimators=ests)
-    summaries = execute(model, len(cases) * seeds, 0, jobs=jobs, scheduler=scheduler, quiet=quiet) if cases else []
+    # a worker takes a case's runs together: its truth and map are built once, not in each worker (same results)
+    summaries = (
+        execute(model, len(cases) * seeds, 0, jobs=jobs, scheduler=scheduler, quiet=quiet, chunk=seeds) if cases else []
+    )
     per_case = [
         (c, pooled(summaries[k * seeds : (k + 1) * seeds], ests)) for k, c in enumerate(cases)
     ]  # runs are returned in order

@@ -7,12 +7,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ...core.errors import ConfigError, InputError
-from ...core.frames import C_en, geodetic_to_ned, latlon_to_meters, ned_to_geodetic, skew
+from ...core.frames import (
+    C_en,
+    C_en_point,
+    ecef_to_geodetic,
+    ecef_to_geodetic_point,
+    geodetic_to_ecef,
+    latlon_to_meters,
+    skew,
+)
 from ...core.types import (
     DEFAULT_INTEGRITY_RISK,
     LAYOUT_15,
@@ -24,7 +33,7 @@ from ...core.types import (
     NavTrajectory,
     StateLayout,
 )
-from ...ins.earth import gravity_n
+from ...ins.earth import gravity_n_point
 
 FloatArray = NDArray[np.float64]
 
@@ -42,22 +51,37 @@ class LocalFrame:
     lon0: float
     h0: float
 
+    # the origin's ECEF position and NED-to-ECEF matrix, computed once (the fusers convert every IMU sample); the
+    # conversions below are core.frames.geodetic_to_ned / ned_to_geodetic with these two terms taken from the cache
+    @cached_property
+    def _r0_e(self) -> FloatArray:
+        return geodetic_to_ecef(self.lat0, self.lon0, self.h0)
+
+    @cached_property
+    def _C_en0(self) -> FloatArray:
+        return C_en(self.lat0, self.lon0)
+
     def to_L(self, lat: ArrayLike, lon: ArrayLike, h: ArrayLike) -> FloatArray:
         """Geodetic (rad, rad, m) to L coordinates (m), shape ``(..., 3)``."""
-        return geodetic_to_ned(lat, lon, h, self.lat0, self.lon0, self.h0)
+        return np.einsum("ji,...j->...i", self._C_en0, geodetic_to_ecef(lat, lon, h) - self._r0_e)
 
     def to_geodetic(self, r_L: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
         """L coordinates (m) to geodetic latitude, longitude (rad), height (m)."""
-        return ned_to_geodetic(r_L, self.lat0, self.lon0, self.h0)
+        r_e = self._r0_e + np.einsum("ij,...j->...i", self._C_en0, np.asarray(r_L, float))
+        if r_e.shape == (3,):  # one point (every IMU sample of the graph fuser): the same numbers, faster
+            return ecef_to_geodetic_point(r_e[0], r_e[1], r_e[2])  # type: ignore[return-value]
+        return ecef_to_geodetic(r_e)
 
     def C_nL(self, lat: float, lon: float) -> FloatArray:
         """Rotation from L to the local-level NED at ``(lat, lon)``: ``x_n = C_nL @ x_L``."""
-        return C_en(lat, lon).T @ C_en(self.lat0, self.lon0)
+        if np.ndim(lat) == 0 and np.ndim(lon) == 0:
+            return C_en_point(lat, lon).T @ self._C_en0
+        return C_en(lat, lon).T @ self._C_en0
 
     def gravity_L(self, r_L: ArrayLike) -> FloatArray:
         """Normal (plumb-line) gravity at ``r_L`` resolved in L, m/s^2 (:func:`ins.earth.gravity_n` rotated)."""
         lat, lon, h = self.to_geodetic(r_L)
-        return self.C_nL(float(lat), float(lon)).T @ gravity_n(float(lat), float(h))
+        return self.C_nL(float(lat), float(lon)).T @ gravity_n_point(float(lat), float(h))
 
 
 @dataclass(frozen=True)

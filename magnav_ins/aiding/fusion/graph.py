@@ -269,7 +269,7 @@ class GraphFuser:
         if t_end - comp["t"] >= self.gravity_update_s:
             pred = pim.predict(node.state, node.bias)
             C_bL = pred.attitude().matrix().T
-            acc_L = self.frame.gravity_L(pred.position()) - self._g0_L - 2.0 * np.cross(self._w_ie_L, pred.velocity())
+            acc_L = self.frame.gravity_L(pred.position()) - self._g0_L - 2.0 * _cross(self._w_ie_L, pred.velocity())
             comp["df_b"] = C_bL @ acc_L
             comp["dw_b"] = -(C_bL @ self._w_ie_L)
             comp["t"] = t_end
@@ -382,11 +382,19 @@ class GraphFuser:
 
     def _add_node(self, t_new: float, fix: Fix | None, height_m: float | None, height_sigma_m: float | None):
         # split the buffered samples at the node time (a straddling sample is cut in two)
-        pim_a = self._new_pim()
-        comp = {"t": -np.inf, "df_b": np.zeros(3), "dw_b": np.zeros(3)}
         rest: list[tuple[float, float, np.ndarray, np.ndarray]] = []
+        if not self._buf_t or self._buf_t[-1] <= t_new + _TIME_TOL:
+            # nothing to split: the running preintegration holds exactly these samples, integrated in this order
+            # from the same node, bias and fresh compensation state as the loop below would (bit for bit)
+            pim_a, buffered = self._pim, []
+        else:
+            pim_a, buffered = (
+                self._new_pim(),
+                list(zip(self._buf_t, self._buf_dt, self._buf_w, self._buf_f, strict=True)),
+            )
+        comp = {"t": -np.inf, "df_b": np.zeros(3), "dw_b": np.zeros(3)}
         t_prev = self._node.t
-        for t, dt, w, f in zip(self._buf_t, self._buf_dt, self._buf_w, self._buf_f, strict=False):
+        for t, dt, w, f in buffered:
             if t <= t_new + _TIME_TOL:
                 self._integrate(pim_a, self._node, t, dt, w, f, comp)
             elif t_prev < t_new - _TIME_TOL:

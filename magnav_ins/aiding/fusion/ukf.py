@@ -103,6 +103,7 @@ def _import_filterpy_kalman() -> Any:
 _kalman = _import_filterpy_kalman()
 MerweScaledSigmaPoints = _kalman.MerweScaledSigmaPoints
 UnscentedKalmanFilter = _kalman.UnscentedKalmanFilter
+unscented_transform = _kalman.unscented_transform
 
 
 def psd_sqrt(A: np.ndarray) -> np.ndarray:
@@ -214,7 +215,10 @@ class UkfFuser(InertialCore):
         u.x = np.zeros(self._n)
         u.P = self._jitter(self._P)
         u.Q = Qd
-        u.predict(fx=_fx, Phi=Phi)
+        # filterpy's predict() without its last step, the sigma points of the predicted covariance (a Cholesky and
+        # 2n+1 points, a third of the cost): only the predicted P is kept here, and correct() draws its own points
+        u.compute_process_sigmas(u._dt, _fx, Phi=Phi)
+        u.x, u.P = unscented_transform(u.sigmas_f, u.Wm, u.Wc, u.Q, u.x_mean, u.residual_x)
         self._P = symmetrise(u.P, 0.0)
 
     def correct(self, fix: Fix, *, height_m: float | None = None, height_sigma_m: float | None = None) -> Innovation:
