@@ -224,3 +224,61 @@ def test_rejected_batch_is_a_fault_and_widens_the_hpl() -> None:
     inn = f.correct_batch(shift, np.kron(np.eye(3), np.array([[25.0, 6.0], [6.0, 16.0]])))
     assert not inn.accepted and inn.extra.get("fault") == 1.0 and f.monitor.n_faults == 1
     assert f.estimate().hpl_m > 1500.0 > 10 * hpl0
+
+
+def _epochs(fuser, imu, fixes) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
+    """Run ``fuser`` over ``fixes`` ((fix, height) pairs) at 1 s epochs; (lat, lon) rad and the fault margin (m)."""
+    pos, margin = [], []
+    i = q = 0
+    for t_ep in np.arange(1.0, float(imu.t[-1]) + 1e-9, 1.0):
+        while q < len(fixes) and fixes[q][0].t <= t_ep + 1e-9:
+            f, h = fixes[q]
+            j = int(np.searchsorted(imu.t, f.t + 1e-9, side="right"))
+            fuser.propagate(imu.slice(i, j))
+            i = j
+            fuser.correct(f, height_m=h, height_sigma_m=H_SIGMA)
+            q += 1
+        j = int(np.searchsorted(imu.t, t_ep + 1e-9, side="right"))
+        fuser.propagate(imu.slice(i, j))
+        i = j
+        nav = fuser.estimate().nav
+        pos.append((nav.lat, nav.lon))
+        margin.append(fuser.fault_margin())
+    return np.array(pos), np.array(margin)
+
+
+def test_ukf_fault_margin_bounds_what_an_undetected_fix_bias_leaves() -> None:
+    """The fault margin is a bound on the error a bias inside the gate leaves (integrity.py: the fault matrix
+    ``T (P- - P+)`` propagated by the INS error transition, shrunk by later updates): one fix displaced along the
+    innovation covariance's major axis to 0.8 of the gate moves the estimate by less than the margin at every
+    epoch after it, by a good part of it (the bound is not vacuous)."""
+    from magnav_ins.core.frames import latlon_to_meters
+
+    init, imu, fixes = run_inputs(0)
+    # the gate alone (no window test: it would exclude the fixes after the fault, a detection, not what the margin
+    # is for; the run's decisions must stay those of the clean run)
+    clean = make_fuser("ukf", init, noise(), fault_window=0)
+    p0, m0 = _epochs(clean, imu, fixes)
+    k_bad = 12
+    inn = clean.innovations[k_bad]
+    S = np.asarray(inn.S)
+    w, V = np.linalg.eigh(S)
+    T2 = clean.monitor.gate_threshold(2)
+    b = math.sqrt(0.8 * T2 * w[-1]) * V[:, -1]  # b' S^-1 b = 0.8 T2, along the major axis ...
+    if b @ np.linalg.solve(S, inn.residual_ne) > 0:  # ... against the fix's own residual, so the gate passes it
+        b = -b
+    bad = list(fixes)
+    f, h = bad[k_bad]
+    dlat, dlon = meters_to_latlon(b[0], b[1], f.lat)
+    bad[k_bad] = (dataclasses.replace(f, lat=f.lat + float(dlat), lon=f.lon + float(dlon)), h)
+    biased = make_fuser("ukf", init, noise(), fault_window=0)
+    p1, m1 = _epochs(biased, imu, bad)
+    assert [i.accepted for i in biased.innovations] == [i.accepted for i in clean.innovations]
+    dn, de = latlon_to_meters(p1[:, 0] - p0[:, 0], p1[:, 1] - p0[:, 1], p0[:, 0])
+    moved = np.hypot(dn, de)
+    after = np.arange(len(moved)) >= int(math.ceil(f.t)) - 1
+    assert np.all(moved[after] <= m1[after] + 0.05), float(np.max(moved[after] - m1[after]))
+    assert np.max(moved[after] / m1[after]) > 0.3
+    # the margin depends on covariances only: the same with and without the fault (up to the UKF's linearisation
+    # about a trajectory 20-40 m apart)
+    np.testing.assert_allclose(m0, m1, rtol=0.02, atol=1e-6)

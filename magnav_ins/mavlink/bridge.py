@@ -220,8 +220,9 @@ class BridgeConfig:
     @property
     def alert_limit(self) -> float:
         """The HPL limit, m: ``alert_limit_m``, by default 5 x ``max_sigma_m`` (a protection level carries a
-        fault-detection margin on top of the ``HPL_PER_SIGMA`` sigmas of the covariance: after GNSS-aided flight the
-        integrity monitor's HPL is about ten sigmas)."""
+        fault-detection margin on top of the ``HPL_PER_SIGMA`` sigmas of the covariance: on the SITL flights the
+        UKF's HPL was 5-7 sigmas while map fixes came, the margin being what the last fixes' covariance reductions
+        could have hidden, :mod:`..aiding.fusion.integrity`)."""
         return self.alert_limit_m if self.alert_limit_m is not None else 5.0 * self.max_sigma_m
 
     @property

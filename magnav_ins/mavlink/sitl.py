@@ -307,7 +307,8 @@ class GroundStation:
         from .link import MavLink
 
         self.link = MavLink(url, source_system=255, source_component=190)
-        self.truth: list[tuple[float, float, float, float, float, float]] = []  # t, lat, lon, h_msl, vn, ve
+        #: SIM_STATE rows: t, lat, lon (rad), h_msl (m), vn, ve, vd (m/s), roll, pitch, yaw (rad)
+        self.truth: list[tuple[float, ...]] = []
         self.ekf: list[tuple[float, float, float, float]] = []  # t, lat, lon, h_msl
         self.gps: dict[int, list[tuple[float, int, float, float]]] = {0: [], 1: []}  # instance: t, fix, lat, lon
         self.texts: list[tuple[float, int, str]] = []
@@ -344,7 +345,10 @@ class GroundStation:
         for m in self.link.recv(timeout):
             now = time.monotonic()
             if isinstance(m, TruthMessage):
-                self.truth.append((now, m.lat, m.lon, m.h_msl, float(m.v_n[0]), float(m.v_n[1])))
+                v = m.v_n
+                self.truth.append(
+                    (now, m.lat, m.lon, m.h_msl, float(v[0]), float(v[1]), float(v[2]), m.roll, m.pitch, m.yaw)
+                )
             elif isinstance(m, PositionMessage) and (m.lat != 0.0 or m.lon != 0.0):
                 self.ekf.append((now, m.lat, m.lon, m.h_msl))
             elif isinstance(m, GnssMessage):

@@ -303,7 +303,8 @@ def fly_square(plan: FlightPlan) -> dict:  # noqa: C901 - one flight, step by st
         if gcs is not None:
             gcs.close()
         sitl.stop()
-    if plan.keep:  # for a look afterwards: truth and the autopilot's estimate, ground-station clock (monotonic)
+    if plan.keep:  # for a look afterwards: truth (SIM_STATE with its attitude: :attr:`sitl.GroundStation.truth`) and
+        # the autopilot's estimate, ground-station clock (monotonic)
         np.savez(
             work / "flight.npz",
             truth=truth,
@@ -360,6 +361,16 @@ def _bridge_figures(out: dict, summary_path: Path, track_path: Path, truth: np.n
         out["bridge_nees"] = round(float(np.mean((e / np.maximum(sig, 1e-3)) ** 2) / 2.0), 2)
     md = (tw >= t_deny) & (tw <= t_land)
     out["bridge_trusted_fraction_denied"] = round(float(np.mean(trusted[md])), 3) if md.any() else 0.0
+    out["bridge_trusted_min_denied"] = (
+        round(float(np.mean(trusted[md]) * (t_land - t_deny) / 60.0), 1) if md.any() else 0.0
+    )
+    hpl = tr.hpl_m.to_numpy()
+    mh = md & np.isfinite(hpl) & (hpl > 0)
+    if mh.any():  # a protection level is a bound: how often the error was above it, trusted or not
+        la, lo = _interp_truth(truth, tw[mh])
+        e = horizontal_error_m(np.radians(tr.lat_deg.to_numpy()[mh]), np.radians(tr.lon_deg.to_numpy()[mh]), la, lo)
+        out["bridge_hpl_exceedance"] = round(float(np.mean(e > hpl[mh])), 4)
+        out["bridge_error_over_hpl_max"] = round(float(np.max(e / hpl[mh])), 3)
     # the output rate the autopilot saw (wall clock), over the whole flight
     mf = (tw >= t_takeoff) & (tw <= t_land)
     if mf.sum() > 1:

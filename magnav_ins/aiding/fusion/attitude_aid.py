@@ -78,6 +78,7 @@ def correct_attitude(
     dx = K @ y
     IKH = np.eye(n) - K @ H
     core._P = symmetrise(IKH @ P @ IKH.T + K @ R @ K.T, 0.0)
+    core._fault_update(IKH, P, core._P, 0.0)  # an attitude aid shrinks an earlier fault's error; no fault of its own
     nav = core._stepper.nav
     core._stepper.reset(apply_error(nav, -dx[:9]))
     core._set_aux(core._aux() - dx[9:n])

@@ -117,8 +117,12 @@ def correct_batch(core, fixes: Sequence[Fix], cov: ArrayLike, gate_probability: 
     Si = np.linalg.inv(S)
     K = -Pxc @ Si
     dx = K @ y
+    P_prior = core._P.copy()
     core._P = symmetrise(core._P - Pxc @ Si @ Pxc.T, 0.0)
     from ...ins.error_model import apply_error
+    from .integrity import gain_transfer
+
+    core._fault_update(gain_transfer(P_prior, core._P), P_prior, core._P, gate.threshold)
 
     nav = core._stepper.nav
     core._stepper.reset(apply_error(nav, -dx[:9]))

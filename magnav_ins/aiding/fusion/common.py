@@ -543,8 +543,8 @@ class InertialCore:
     step (Van Loan), then
     :meth:`_predict_cov` (``Phi P Phi^T + Qd`` here; the UKF overrides it with its unscented prediction).
     (:func:`discretize_fast` is error_model's Van Loan formula with a product-only matrix exponential.)
-    At every covariance step a checkpoint (state, covariance, biases, sample count) is kept for ``buffer_s`` s with
-    the raw samples since the oldest one; :meth:`_rewind` restores the last checkpoint before a past time and returns
+    At every covariance step a checkpoint (state, covariance, biases, sample count, fault stack) is kept for
+    ``buffer_s`` s with the raw samples since the oldest one; :meth:`_rewind` restores the last checkpoint before a past time and returns
     the samples to replay, so a late fix is applied at its own time (re-propagation).
 
     Optional states (:class:`ExtraStates`; ``scale_factors``, ``scale_factor_tau_s``, ``map_bias_sigma_m``,
@@ -601,6 +601,9 @@ class InertialCore:
         self._stepper = StrapdownStepper(init.nav, altitude_hold=altitude_hold)
         self._sums = AttitudeSums()
         self._P = symmetrise(P0, 0.0)
+        #: the fault stack (k, n, n): bounds on the state error an undetected fault on a recent accepted fix may
+        #: have left, as it evolves since (:func:`integrity.fault_update`; the HPL's fault margin)
+        self._M = np.zeros((1, n, n))
         self._b_a = np.zeros(3)
         self._b_g = np.zeros(3)
         self._s_a = np.zeros(3)  # scale-factor estimates (dimensionless; used with extra.scale_factors only)
@@ -683,8 +686,9 @@ class InertialCore:
 
     def _checkpoint(self) -> None:
         self._checkpoints.append(
-            (self.t, self._stepper.nav, self._P.copy(), self._aux(), self._n_dropped + len(self._samples))
-        )
+            (self.t, self._stepper.nav, self._P.copy(), self._aux(), self._n_dropped + len(self._samples),
+             self._M.copy())
+        )  # fmt: skip
         t_old = self.t - self.buffer_s
         while len(self._checkpoints) > 1 and self._checkpoints[1][0] <= t_old:
             self._checkpoints.pop(0)
@@ -712,11 +716,15 @@ class InertialCore:
                                 sm.Cf_sum, sm.Cw_sum)  # fmt: skip
         held = np.diag(self._P)[list(_HELD)].copy() if self._altitude_hold is not None else None
         self._predict_cov(Phi, Qd)
+        if len(self._M) > 1 or self._M.any():  # the faults follow the error dynamics without the process noise
+            self._M = Phi @ self._M @ Phi.T
         if held is not None:  # the INS holds the altitude: no down error growth (the unstable vertical channel,
             # e-folding every ~570 s, would otherwise blow the covariance up and leak into the horizontal)
             self._P[_HELD, :] = 0.0
             self._P[:, _HELD] = 0.0
             self._P[_HELD, _HELD] = held
+            self._M[:, _HELD, :] = 0.0
+            self._M[:, :, _HELD] = 0.0
         if self.extra.map_bias_sigma_m is not None:
             self._b_map = self._b_map * self.extra.decay(dt)
         if self._history is not None:
@@ -770,13 +778,14 @@ class InertialCore:
         cps = [c for c in self._checkpoints if c[0] <= t_past + 1e-9]
         if not cps:
             return None
-        t_c, nav, P, aux, n_at = cps[-1]
+        t_c, nav, P, aux, n_at, M = cps[-1]
         samples = self._samples.cut(n_at - self._n_dropped)
         while self._checkpoints and self._checkpoints[-1][0] > t_c:
             self._checkpoints.pop()
         self._checkpoints.pop()  # re-created below
         self._stepper.reset(nav)
         self._P = P.copy()
+        self._M = M.copy()
         self._set_aux(aux)
         self._t_cov = t_c
         if self._history is not None:
@@ -798,6 +807,20 @@ class InertialCore:
 
     def _replay(self, samples: Samples) -> None:
         self._run(samples)
+
+    def _fault_update(self, A: FloatArray, P_prior: FloatArray, P_post: FloatArray, threshold: float) -> None:
+        """An accepted update (full covariances before and after it, ``A = I - K H``, the gate's chi-square
+        ``threshold``; inf or 0 for trusted fixes) moves the fault stack (:func:`integrity.fault_update`)."""
+        from .integrity import fault_update
+
+        self._M = fault_update(self._M, A, P_prior, P_post, threshold)
+
+    def fault_margin(self) -> float:
+        """The HPL's fault-detection margin now (m): the largest ``sqrt(lambda_max)`` of the fault stack's
+        north/east blocks (:func:`integrity.fault_margin`; as of the last covariance step, :meth:`estimate`)."""
+        from .integrity import fault_margin
+
+        return fault_margin(self._M)
 
     # ------------------------------------------------------------------------------------------ Fuser API
     def propagate(self, imu: ImuBatch, *, altitude_hold: FloatArray | None = None, attitudes: bool = False):
@@ -861,7 +884,7 @@ class InertialCore:
         self._advance_cov()
         P = self._P.copy()
         m = self.monitor
-        return NavEstimate(self._stepper.nav, P, self.layout, m.hpl(P[0:2, 0:2]), m.integrity_risk)
+        return NavEstimate(self._stepper.nav, P, self.layout, m.hpl(P[0:2, 0:2], self.fault_margin()), m.integrity_risk)
 
     @property
     def bias(self) -> tuple[FloatArray, FloatArray]:

@@ -38,10 +38,22 @@ Horizontal protection level (:meth:`FaultMonitor.hpl`, m), at ``integrity_risk``
   on one fix passes the gate while ``b^T S^-1 b <= T_gate`` and moves the estimate by ``K_pos b``, at most
   ``sqrt(T_gate lambda_max(P- - P+))`` (the slope bound of RAIM, Brown & Chin 1998, applied to the Kalman
   update: ``K_pos S K_pos^T = P- - P+``, the fix's covariance reduction). One fault at a time (RAIM's
-  single-fault hypothesis; several faults within a window are the window test's): the margin is the larger of the
-  new fix's and the earlier one's, shrunk by the update (``|| P+ (P-)^-1 ||``, the part of an old position error
-  the update leaves) and scaled with the filter's horizontal sigma between fixes (the induced error propagates
-  through the same dynamics as the estimation error).
+  single-fault hypothesis; several faults within a window are the window test's).
+
+  The inertial fusers (:class:`common.InertialCore`: UKF, free inertial) carry the whole induced error: the
+  fault's state error ``dx = K b`` is bounded by the *fault matrix* ``M = T_gate (P- - P+)`` (full state:
+  ``(u^T K b)^2 <= T_gate u^T K S K^T u`` for every direction ``u``), which then evolves as the error itself does
+  -- through the INS error transition without the process noise, ``M <- Phi M Phi^T`` (a velocity or tilt error
+  the faulty fix left grows into position; the process noise is the fault-free term's), and through each later
+  update, ``M <- A M A^T`` with ``A = I - K H`` (the part of an old error an update leaves). Any recent fix may
+  be the faulty one: each of the last :data:`FAULT_MEMORY` accepted fixes keeps its own matrix, older ones are
+  summed into one that bounds each of them, and ``m_f`` is the largest ``sqrt(lambda_max(M_NE))``
+  (:func:`fault_update`, :func:`fault_margin`; passed to :meth:`FaultMonitor.hpl` as ``margin_m``). Keeping only
+  the larger of the old and the new fault at each fix is not enough: the one dropped may grow more later (its
+  velocity part). So the
+  margin comes from the information the fixes actually brought, not from the whole covariance: before this (still
+  the factor graph's rule, :meth:`FaultMonitor.margin`) the margin at a fix was scaled with the filter's horizontal
+  sigma between fixes, process noise included, and on the SITL flights the HPL reached 7.6-10 sigmas.
 * ``d`` the doubt of unresolved exclusions: while fixes excluded since the last accepted one are unexplained, the
   filter may be the one that is wrong, by up to the residual: ``d = max_i |r_i| + K sqrt(lambda_max(R_i +
   P_ne))``. The next accepted fix resolves them (they were faults); a recovery resolves them the other way.
@@ -96,6 +108,63 @@ def _psd(P: FloatArray) -> FloatArray:
     """The nearest positive semi-definite matrix of a symmetric 2x2 (eigenvalues clipped at 0)."""
     w, V = np.linalg.eigh(0.5 * (P + P.T))
     return (V * np.maximum(w, 0.0)) @ V.T
+
+
+def gain_transfer(P_prior: ArrayLike, P_post: ArrayLike) -> FloatArray:
+    """``A = P+ (P-)^-1`` (n, n): for a Kalman update, ``I - K H`` (what an update leaves of an earlier state
+    error), from the covariances before and after it. Solved on the correlation scale (the states span m^2 to
+    rad^2/s^2); states of zero variance are left as they are; identity if singular."""
+    Pm = np.asarray(P_prior, float)
+    Pp = np.asarray(P_post, float)
+    d = np.sqrt(np.clip(np.diag(Pm), 0.0, None))
+    live = d > 0.0
+    A = np.eye(len(d))
+    if not live.any():
+        return A
+    dl = d[live]
+    Cm = Pm[np.ix_(live, live)] / np.outer(dl, dl)
+    Cp = Pp[np.ix_(live, live)] / np.outer(dl, dl)
+    try:
+        An = np.linalg.solve(Cm.T, Cp.T).T  # Cp Cm^-1 (Cm symmetric)
+    except np.linalg.LinAlgError:
+        return A
+    if not np.all(np.isfinite(An)):
+        return A
+    A[np.ix_(live, live)] = An * np.outer(dl, 1.0 / dl)
+    return A
+
+
+#: faults kept apart in the fault stack (:func:`fault_update`): the last this many accepted fixes
+FAULT_MEMORY = 8
+
+
+def fault_update(F: ArrayLike, A: ArrayLike, P_prior: ArrayLike, P_post: ArrayLike, threshold: float) -> FloatArray:
+    """The fault stack (k, n, n; module docstring) after an accepted update. ``F[0]`` bounds every fault dropped
+    from the stack (their sum), ``F[1:]`` the faults of the last :data:`FAULT_MEMORY` fixes, one each. Every
+    matrix becomes ``A M A^T`` (``A = I - K H``: what the update leaves of an earlier error) and the new fix's
+    ``threshold (P- - P+)`` is pushed (``threshold`` the gate's chi-square quantile; 0 or inf: a trusted fix, no
+    fault); the oldest beyond the memory is added to ``F[0]`` (a sum of PSD matrices bounds each of them).
+    ``P_prior``, ``P_post``: full covariances before and after the update."""
+    A = np.asarray(A, float)
+    F = np.asarray(F, float)
+    out = A @ F @ A.T
+    out = 0.5 * (out + np.swapaxes(out, 1, 2))
+    if not (np.isfinite(threshold) and threshold > 0.0):
+        return out
+    D = np.asarray(P_prior, float) - np.asarray(P_post, float)
+    w, V = np.linalg.eigh(0.5 * (D + D.T))
+    out = np.concatenate([out, ((V * np.maximum(w, 0.0)) @ V.T * float(threshold))[None]])
+    if len(out) > FAULT_MEMORY + 1:
+        out[0] += out[1]
+        out = np.delete(out, 1, axis=0)
+    return out
+
+
+def fault_margin(F: ArrayLike) -> float:
+    """The fault-detection margin (m) of a fault stack (:func:`fault_update`): the largest ``sqrt(lambda_max)``
+    of its matrices' north/east blocks (one fault at a time)."""
+    F = np.asarray(F, float)
+    return math.sqrt(max((lambda_max(M[0:2, 0:2]) for M in F), default=0.0))
 
 
 def hpl_fault_free(cov_ne: ArrayLike, integrity_risk: float = DEFAULT_INTEGRITY_RISK) -> float:
@@ -314,11 +383,13 @@ class FaultMonitor:
         P = np.asarray(P_ne, float)
         return max(float(np.hypot(*e.r)) + self.k * math.sqrt(lambda_max(e.R + P)) for e in self._excluded)
 
-    def hpl(self, P_ne: ArrayLike) -> float:
+    def hpl(self, P_ne: ArrayLike, margin_m: float | None = None) -> float:
         """The horizontal protection level (m) for the current horizontal covariance ``P_ne`` (m^2); NaN when
-        ``P_ne`` is not finite."""
+        ``P_ne`` is not finite. ``margin_m``: the fault-detection margin (m) when the fuser tracks it
+        (:func:`fault_update`); None: :meth:`margin`, this monitor's own (scaled with the covariance)."""
         P = np.asarray(P_ne, float)
         if not np.all(np.isfinite(P)):
             return float("nan")
-        nominal = self.k * math.sqrt(lambda_max(P)) + self.margin(P)
+        m = self.margin(P) if margin_m is None else float(margin_m)
+        nominal = self.k * math.sqrt(lambda_max(P)) + m
         return max(nominal, self.doubt(P))

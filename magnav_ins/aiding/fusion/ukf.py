@@ -303,14 +303,17 @@ class UkfFuser(InertialCore):
         elif verdict.action == "reject":
             self._replay(rest)
             return Innovation(float(fix.t), y[:2], S_ne, v_ne, False, verdict.reason, fix.source, verdict.extra)
-        P_prior_ne = self._P[0:2, 0:2].copy()
+        P_prior = self._P.copy()
         u._dim_z = dim
         u.update(z, R=Rz, hx=hx)
         dx = np.asarray(u.x, float)
         self._P = symmetrise(u.P, 0.0)
         self.monitor.accepted(
-            fix.t, nis(y[:2], S_ne), P_prior_ne, self._P[0:2, 0:2], recovery=verdict.action == "recover"
+            fix.t, nis(y[:2], S_ne), P_prior[0:2, 0:2], self._P[0:2, 0:2], recovery=verdict.action == "recover"
         )
+        # h is linear in the error state: A = I - K H is what this update leaves of an earlier (fault) error
+        H = np.column_stack([hx(e) for e in np.eye(n)])
+        self._fault_update(np.eye(n) - np.asarray(u.K, float) @ H, P_prior, self._P, gate.threshold)
         # closed-loop feedback, then reset the error state
         corrected = apply_error(nav, -dx[:9])
         self._stepper.reset(corrected)
