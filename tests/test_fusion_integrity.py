@@ -35,6 +35,24 @@ def displaced(fix, rng: np.random.Generator, lo_m: float = 500.0, hi_m: float = 
     return dataclasses.replace(fix, lat=fix.lat + float(dlat), lon=fix.lon + float(dlon), source="faulty")
 
 
+def step_epochs(fuser, imu, fixes):  # noqa: ANN001, ANN201
+    """Propagate ``fuser`` over ``imu`` and correct it with ``fixes`` ((fix, height) pairs, time order), yielding
+    each 1 s epoch time (s) once the fuser stands at it."""
+    i = q = 0
+    for t_ep in np.arange(1.0, float(imu.t[-1]) + 1e-9, 1.0):
+        while q < len(fixes) and fixes[q][0].t <= t_ep + 1e-9:
+            f, h = fixes[q]
+            j = int(np.searchsorted(imu.t, f.t + 1e-9, side="right"))
+            fuser.propagate(imu.slice(i, j))
+            i = j
+            fuser.correct(f, height_m=h, height_sigma_m=H_SIGMA)
+            q += 1
+        j = int(np.searchsorted(imu.t, t_ep + 1e-9, side="right"))
+        fuser.propagate(imu.slice(i, j))
+        i = j
+        yield float(t_ep)
+
+
 def fly_epochs(kind: str, seed: int, faulty: set[int], *, init_offset_m: float = 0.0, rng_seed: int = 99):
     """Run ``kind`` over the contract flight with the fixes of index ``faulty`` displaced; returns the fuser, the
     true horizontal error and the HPL at every 1 s epoch, and the indices of the displaced fixes."""
@@ -49,19 +67,7 @@ def fly_epochs(kind: str, seed: int, faulty: set[int], *, init_offset_m: float =
     todo = [(f, h, n in faulty) for n, (f, h) in enumerate(fixes)]
     todo = [(displaced(f, rng) if bad else f, h, bad) for f, h, bad in todo]
     err, hpl = [], []
-    i = 0
-    q = 0
-    for t_ep in np.arange(1.0, float(imu.t[-1]) + 1e-9, 1.0):
-        while q < len(todo) and todo[q][0].t <= t_ep + 1e-9:
-            f, h, _ = todo[q]
-            j = int(np.searchsorted(imu.t, f.t + 1e-9, side="right"))
-            fuser.propagate(imu.slice(i, j))
-            i = j
-            fuser.correct(f, height_m=h, height_sigma_m=H_SIGMA)
-            q += 1
-        j = int(np.searchsorted(imu.t, t_ep + 1e-9, side="right"))
-        fuser.propagate(imu.slice(i, j))
-        i = j
+    for _ in step_epochs(fuser, imu, [(f, h) for f, h, _ in todo]):
         est = fuser.estimate()
         k = int(np.argmin(np.abs(traj.t - est.nav.t)))
         err.append(float(np.hypot(*nav_error(est.nav, traj.at(k))[:2])))
@@ -229,18 +235,7 @@ def test_rejected_batch_is_a_fault_and_widens_the_hpl() -> None:
 def _epochs(fuser, imu, fixes) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
     """Run ``fuser`` over ``fixes`` ((fix, height) pairs) at 1 s epochs; (lat, lon) rad and the fault margin (m)."""
     pos, margin = [], []
-    i = q = 0
-    for t_ep in np.arange(1.0, float(imu.t[-1]) + 1e-9, 1.0):
-        while q < len(fixes) and fixes[q][0].t <= t_ep + 1e-9:
-            f, h = fixes[q]
-            j = int(np.searchsorted(imu.t, f.t + 1e-9, side="right"))
-            fuser.propagate(imu.slice(i, j))
-            i = j
-            fuser.correct(f, height_m=h, height_sigma_m=H_SIGMA)
-            q += 1
-        j = int(np.searchsorted(imu.t, t_ep + 1e-9, side="right"))
-        fuser.propagate(imu.slice(i, j))
-        i = j
+    for _ in step_epochs(fuser, imu, fixes):
         nav = fuser.estimate().nav
         pos.append((nav.lat, nav.lon))
         margin.append(fuser.fault_margin())

@@ -50,6 +50,21 @@ def geodetic_to_ecef(lat: ArrayLike, lon: ArrayLike, h: ArrayLike) -> NDArray[np
     return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
 
 
+def _bowring(x, y, z):  # noqa: ANN001, ANN202
+    """Bowring's latitude with two refinements on ECEF x, y, z (m; arrays or numpy scalars alike)."""
+    lon = np.arctan2(y, x)
+    p = np.hypot(x, y)
+    beta = np.arctan2(z * WGS84_A, p * WGS84_B)
+    lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
+    for _ in range(2):
+        beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
+        lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
+    cl = np.cos(lat)
+    sl = np.sin(lat)
+    h = p * cl + z * sl - WGS84_A * np.sqrt(1.0 - WGS84_E2 * sl * sl)
+    return lat, lon, h
+
+
 def ecef_to_geodetic(r_e: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """ECEF (..., 3) metres to geodetic latitude, longitude (rad) and ellipsoidal height (m).
 
@@ -57,17 +72,7 @@ def ecef_to_geodetic(r_e: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.fl
     """
     r = np.asarray(r_e, dtype=float)
     x, y, z = r[..., 0], r[..., 1], r[..., 2]
-    lon = np.arctan2(y, x)
-    p = np.hypot(x, y)
-    beta = np.arctan2(z * WGS84_A, p * WGS84_B)
-    lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
-    for _ in range(2):
-        beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
-        lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
-    cl = np.cos(lat)
-    sl = np.sin(lat)
-    h = p * cl + z * sl - WGS84_A * np.sqrt(1.0 - WGS84_E2 * sl * sl)
-    return lat, lon, h
+    return _bowring(x, y, z)
 
 
 def ecef_to_geodetic_point(x: float, y: float, z: float) -> tuple[np.float64, np.float64, np.float64]:
@@ -75,17 +80,7 @@ def ecef_to_geodetic_point(x: float, y: float, z: float) -> tuple[np.float64, np
     same numbers bit for bit, without the array handling that dominates it for one point (fusers convert every IMU
     sample)."""
     x, y, z = np.float64(x), np.float64(y), np.float64(z)
-    lon = np.arctan2(y, x)
-    p = np.hypot(x, y)
-    beta = np.arctan2(z * WGS84_A, p * WGS84_B)
-    lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
-    for _ in range(2):
-        beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
-        lat = np.arctan2(z + WGS84_EP2 * WGS84_B * np.sin(beta) ** 3, p - WGS84_E2 * WGS84_A * np.cos(beta) ** 3)
-    cl = np.cos(lat)
-    sl = np.sin(lat)
-    h = p * cl + z * sl - WGS84_A * np.sqrt(1.0 - WGS84_E2 * sl * sl)
-    return lat, lon, h
+    return _bowring(x, y, z)
 
 
 def C_en_point(lat: float, lon: float) -> NDArray[np.float64]:
