@@ -113,6 +113,7 @@ from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ..gating import chi2_threshold
 from ._local import LocalFrame, feature_variability, map_components, sample_map
+from ._batch import RIVAL_PEAK_RATIO, rival_moment
 from .map_error import INTEGRAL_SCALE, MapErrorModel, markov_coefficient, misfit_factor, resolve_map_error
 
 FloatArray = NDArray[np.float64]
@@ -123,10 +124,43 @@ _CLOUD_TAIL_CHI2 = 9.0
 #: an increment is issued only if the cloud's mean and the increment are within the 99.9 % region (chi-square 2 dof)
 #: of the prior the cloud was drawn from: otherwise the likelihood peaks where there are no particles
 _PRIOR_CONSISTENCY_CHI2 = 13.8155
+#: nodes a side of the rival-mode grid (``rival_grid``, INS dynamics): 101 spans a 25 km prior region (Rio's
+#: tactical priors after 10 minutes) at 250 m, the Rio map's node spacing; 0.5 ms of map lookups per reading
+RIVAL_GRID = 101
 #: after the road penalty the cloud is resampled when its effective sample size drops below this fraction (at most
 #: ``resample_threshold``): a likelihood applied at every prediction would otherwise, resampled each time, wear the
 #: cloud down to a few particles between readings
 _ROAD_RESAMPLE = 0.5
+
+
+@dataclass(frozen=True)
+class RivalGrid:
+    """The rigid-offset likelihood of the readings since the cloud was drawn (module docstring, "Rival modes"):
+    ``ab`` (K, 2) m the nodes in the prior's principal axes (a regular grid, :func:`._batch.offset_grid` order),
+    ``axes`` (2, 2) the axes (columns: north/east unit vectors), ``spacing`` (D_a, D_b) m; per node and field
+    component the sums of the readings' misfit over their variance ``s1`` (K, c), ``s2`` (K, c) and of the inverse
+    variances ``w`` (c,) (the level is unknown: the log-likelihood is ``-(s2 - s1^2 / w) / 2``); ``ok`` (K,) nodes
+    that stayed on the map; ``n`` the readings summed."""
+
+    ab: FloatArray
+    axes: FloatArray
+    spacing: tuple[float, float]
+    s1: FloatArray
+    s2: FloatArray
+    w: FloatArray
+    ok: NDArray[np.bool_]
+    n: int = 0
+    t0: float = 0.0
+
+    def offsets_ne(self) -> FloatArray:
+        """The nodes' north/east offsets (K, 2) m from the cloud's prior mean."""
+        return self.ab @ self.axes.T
+
+    def loglik(self) -> FloatArray:
+        """Log-likelihood (K,) of each node (``-inf`` off the map), the level of each component marginalised."""
+        w = np.where(self.w > 0, self.w, 1.0)
+        ll = -0.5 * np.sum(self.s2 - self.s1**2 / w, axis=1)
+        return np.where(self.ok, ll, -np.inf)
 
 
 @dataclass
@@ -173,6 +207,7 @@ class ParticleState:
     recent_nis: tuple[tuple[float, float], ...] = ()
     fault: str = ""
     faults: int = 0
+    rivals: RivalGrid | None = None
 
 
 @nb.njit(cache=True)
@@ -347,6 +382,8 @@ class ParticleFilter:
     start_at_rest: bool = False
     fault_window: int = 20
     fault_probability: float = 0.999
+    rival_grid: int | None = None
+    rival_peak_ratio: float = RIVAL_PEAK_RATIO
     name: str = "particle"
 
     def __post_init__(self) -> None:
@@ -372,6 +409,12 @@ class ParticleFilter:
         if not (isinstance(self.fault_window, int | np.integer) and self.fault_window >= 0):
             raise ConfigError(f"particle 'fault_window': expected an integer >= 0, got {self.fault_window!r}")
         chi2_threshold(1, self.fault_probability)  # validates the probability (a clear error)
+        if self.rival_grid is None:  # the INS-driven cloud's tracks are the INS track's, rigid up to its velocity error
+            self.rival_grid = RIVAL_GRID if self.dynamics == "ins" else 0
+        if not (isinstance(self.rival_grid, int | np.integer) and (self.rival_grid == 0 or self.rival_grid >= 5)):
+            raise ConfigError(f"particle 'rival_grid': expected 0 (off) or an integer >= 5, got {self.rival_grid!r}")
+        if not 0.0 < self.rival_peak_ratio <= 1.0:
+            raise ConfigError(f"particle 'rival_peak_ratio': expected 0 < x <= 1, got {self.rival_peak_ratio!r}")
         if self.measurement == "fix" and self.fix_matcher is None:
             from .likelihood import LikelihoodMatcher
 
@@ -434,7 +477,79 @@ class ParticleFilter:
         st.dv = dv
         st.prior_mean, st.prior_cov = prior_mean, prior_cov
         st.p_vv = vv_now
+        if self.init == "gaussian":
+            st.rivals = self._rival_grid(c_pp, float(nav.t))
         return st
+
+    def _rival_grid(self, p_pos: FloatArray, t0: float) -> RivalGrid | None:
+        """An empty :class:`RivalGrid` over the cloud's prior region: ``rival_grid`` nodes a side along the
+        principal axes of the prior position covariance ``p_pos`` (2, 2) m^2 (the inflated one the cloud is drawn
+        from), out to the prior-consistency test's radius (its 99.9 % region); None when off or in the posterior
+        mode (module docstring, "Rival modes")."""
+        if self.rival_grid == 0 or self.fix_output != "increment":
+            return None
+        lam, vec = np.linalg.eigh(0.5 * (p_pos + p_pos.T))
+        if not (np.all(np.isfinite(lam)) and lam[0] > 0):
+            return None
+        half = np.sqrt(_PRIOR_CONSISTENCY_CHI2 * lam)
+        k = int(self.rival_grid) // 2
+        a, b = np.linspace(-half[0], half[0], 2 * k + 1), np.linspace(-half[1], half[1], 2 * k + 1)
+        A, B = np.meshgrid(a, b, indexing="ij")
+        kk = A.size
+        return RivalGrid(
+            np.column_stack([A.ravel(), B.ravel()]), vec, (float(a[1] - a[0]), float(b[1] - b[0])),
+            np.zeros((kk, 0)), np.zeros((kk, 0)), np.zeros(0), np.ones(kk, bool), 0, t0,
+        )  # fmt: skip
+
+    def _rival_update(
+        self, state: ParticleState, fmap: FieldMap, z: FloatArray, var: float
+    ) -> RivalGrid | None:
+        """The grid's sums with the reading ``z`` (c,) of variance ``var`` (map unit^2: sensor + map error,
+        tempered for the error's correlation) added, each node moved with the cloud's prior mean."""
+        g = state.rivals
+        if g is None or state.prior_mean is None or not (np.isfinite(var) and var > 0):
+            return g
+        ip = [0, 1] if self.dynamics == "ins" else [0, 3]
+        nodes = g.offsets_ne() + state.prior_mean[ip]
+        m = sample_map(fmap, state.frame, nodes[:, 0], nodes[:, 1], None).reshape(len(nodes), -1)
+        ok = g.ok & np.all(np.isfinite(m), axis=1)
+        r = np.where(ok[:, None], z[None, :] - m, 0.0)
+        if g.s1.shape[1] != r.shape[1]:
+            g = replace(g, s1=np.zeros_like(r), s2=np.zeros_like(r), w=np.zeros(r.shape[1]))
+        return replace(g, s1=g.s1 + r / var, s2=g.s2 + r * r / var, w=g.w + 1.0 / var, ok=ok, n=g.n + 1)
+
+    def _rival_variance(
+        self, state: ParticleState, fisher: FloatArray | None, s2v: float, sm2: float, err: MapErrorModel
+    ) -> float:
+        """Variance (map unit^2) of this reading in the rigid-offset likelihood: sensor ``s2v`` + map error ``sm2``
+        counted ``ell / ds`` times (readings ``ds`` apart within one correlation length ``ell`` share their map
+        error, as :func:`._batch.reading_variance`) + the misfit of the cloud's INS velocity error over the time
+        since it was drawn (the particles' tracks are not rigid: ``|g|^2 tr(P_vv) dt^2 / 2``, ``g`` the map
+        gradient at the cloud, from the Fisher sums)."""
+        ell, ds = float(err.correlation_m), float(state.extra.get("moved_m", 0.0))
+        temper = float(np.clip(ell / ds, 1.0, None)) if (np.isfinite(ell) and ell > 0 and ds > 0) else 1.0
+        var = s2v + temper * sm2
+        g = state.rivals
+        if g is not None and fisher is not None and state.prior_cov is not None:
+            old = state.fisher[3:7] if state.fisher is not None else np.zeros(4)
+            g2 = float(fisher[3] - old[0] + fisher[6] - old[3])  # |g|^2 of this reading
+            iv = [2, 3]  # the INS velocity error (rival grids are for INS dynamics)
+            dt = state.t - g.t0
+            var += max(g2, 0.0) * float(np.trace(state.prior_cov[np.ix_(iv, iv)])) * 0.5 * dt * dt
+        return var
+
+    def _rival_cover(self, state: ParticleState, d_fix: FloatArray, r: FloatArray) -> tuple[FloatArray, int]:
+        """Covariance (2, 2) m^2 covering the rival modes of the grid's likelihood about the increment's offset
+        ``d_fix`` (2,) m from the prior mean (:func:`._batch.rival_moment` in the grid's axes, rotated back), and
+        how many there are; rivals are at least 3 increment sigmas (``r`` (2, 2) m^2) and two nodes away."""
+        g = state.rivals
+        if g is None or g.n < 2:
+            return np.zeros((2, 2)), 0
+        ab_fix = g.axes.T @ np.asarray(d_fix, float)
+        sep = max(3.0 * float(np.sqrt(np.max(np.linalg.eigvalsh(r)))), 2.0 * max(g.spacing))
+        mom, k = rival_moment(g.loglik(), g.ab[:, 0] - ab_fix[0], g.ab[:, 1] - ab_fix[1], g.spacing, sep,
+                              self.rival_peak_ratio)  # fmt: skip
+        return g.axes @ mom @ g.axes.T, k
 
     def predict(self, state: ParticleState, prior: NavEstimate) -> ParticleState:
         """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones.
@@ -603,6 +718,8 @@ class ParticleFilter:
         nis = float(state.extra.get("nis_sum", 0.0))
         r = r * misfit_factor(nis, n_nis)  # the readings missed their forecasts by more than the model allows
         r = _cramer_rao_floor(r, _fisher_bound(state.fisher, self.level_sigma is None))
+        cover, n_rivals = self._rival_cover(state, z - mu0, r)
+        r = r + cover  # the readings fit elsewhere in the prior region too: the fix's covariance says so
         sig = float(np.sqrt(np.linalg.eigvalsh(r)[-1]))
         max_sig = (
             self.max_fix_sigma_m
@@ -610,9 +727,14 @@ class ParticleFilter:
             else 2.0 * float(np.sqrt(np.linalg.eigvalsh(p0)[-1]))
         )
         if sig > max_sig:
+            why = (
+                f"ambiguous: {n_rivals} rival mode(s) of the readings' likelihood in the prior region; covering them"
+                if n_rivals
+                else "too little new information:"
+            )
             return Fix.no_fix(
                 state.t,
-                f"too little new information: fix sigma {sig:.3g} m above {max_sig:.3g} m ({state.readings} readings)",
+                f"{why} fix sigma {sig:.3g} m above {max_sig:.3g} m ({state.readings} readings)",
                 self.name,
                 state.neff,
             )
@@ -677,11 +799,12 @@ class ParticleFilter:
         # that alone gave confident along-track fixes hundreds of metres off on a featureless stretch
         sm2 = np.full(len(sm2), float(w @ sm2))
         fisher = _fisher_step(state, fmap, lat, lon, w, sm2, s2v, err.correlation_m)
+        rivals = self._rival_update(state, fmap, z, self._rival_variance(state, fisher, s2v, float(sm2[0]), err))
         sm2 = sm2[:, None] * np.ones((1, ncomp))
         st = self._level_error_predict(state, sm2, err.correlation_m, ncomp)
         resid = np.where(ok[:, None], z[None, :] - m, 0.0)  # (M, c)
         loglik, st = self._level_error_update(st, resid, s2v)
-        st = replace(st, fisher=fisher)
+        st = replace(st, fisher=fisher, rivals=rivals)
         loglik = np.where(ok, loglik, -np.inf)
         return loglik, st
 
