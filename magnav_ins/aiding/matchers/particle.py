@@ -411,6 +411,8 @@ class ParticleFilter:
         chi2_threshold(1, self.fault_probability)  # validates the probability (a clear error)
         if self.rival_grid is None:  # the INS-driven cloud's tracks are the INS track's, rigid up to its velocity error
             self.rival_grid = RIVAL_GRID if self.dynamics == "ins" else 0
+        if isinstance(self.rival_grid, float) and self.rival_grid.is_integer():  # a TOML / JSON number
+            self.rival_grid = int(self.rival_grid)
         if not (isinstance(self.rival_grid, int | np.integer) and (self.rival_grid == 0 or self.rival_grid >= 5)):
             raise ConfigError(f"particle 'rival_grid': expected 0 (off) or an integer >= 5, got {self.rival_grid!r}")
         if not 0.0 < self.rival_peak_ratio <= 1.0:
