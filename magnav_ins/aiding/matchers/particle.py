@@ -112,8 +112,8 @@ from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ..gating import chi2_threshold
-from ._local import LocalFrame, feature_variability, map_components, sample_map
 from ._batch import RIVAL_PEAK_RATIO, rival_moment
+from ._local import LocalFrame, feature_variability, map_components, sample_map
 from .map_error import INTEGRAL_SCALE, MapErrorModel, markov_coefficient, misfit_factor, resolve_map_error
 
 FloatArray = NDArray[np.float64]
@@ -503,9 +503,7 @@ class ParticleFilter:
             np.zeros((kk, 0)), np.zeros((kk, 0)), np.zeros(0), np.ones(kk, bool), 0, t0,
         )  # fmt: skip
 
-    def _rival_update(
-        self, state: ParticleState, fmap: FieldMap, z: FloatArray, var: float
-    ) -> RivalGrid | None:
+    def _rival_update(self, state: ParticleState, fmap: FieldMap, z: FloatArray, var: float) -> RivalGrid | None:
         """The grid's sums with the reading ``z`` (c,) of variance ``var`` (map unit^2: sensor + map error,
         tempered for the error's correlation) added, each node moved with the cloud's prior mean."""
         g = state.rivals
