@@ -125,8 +125,11 @@ _CLOUD_TAIL_CHI2 = 9.0
 #: of the prior the cloud was drawn from: otherwise the likelihood peaks where there are no particles
 _PRIOR_CONSISTENCY_CHI2 = 13.8155
 #: nodes a side of the rival-mode grid (``rival_grid``, INS dynamics): 101 spans a 25 km prior region (Rio's
-#: tactical priors after 10 minutes) at 250 m, the Rio map's node spacing; 0.5 ms of map lookups per reading
+#: tactical priors after 10 minutes) at 250 m, the Rio map's node spacing
 RIVAL_GRID = 101
+#: at most this many readings (evenly thinned, their variances scaled to keep the total information) enter the
+#: rival check: ~0.05 s of map lookups per fix attempt on a 101 x 101 grid
+RIVAL_MAX_READINGS = 100
 #: after the road penalty the cloud is resampled when its effective sample size drops below this fraction (at most
 #: ``resample_threshold``): a likelihood applied at every prediction would otherwise, resampled each time, wear the
 #: cloud down to a few particles between readings
@@ -134,33 +137,20 @@ _ROAD_RESAMPLE = 0.5
 
 
 @dataclass(frozen=True)
-class RivalGrid:
-    """The rigid-offset likelihood of the readings since the cloud was drawn (module docstring, "Rival modes"):
-    ``ab`` (K, 2) m the nodes in the prior's principal axes (a regular grid, :func:`._batch.offset_grid` order),
-    ``axes`` (2, 2) the axes (columns: north/east unit vectors), ``spacing`` (D_a, D_b) m; per node and field
-    component the sums of the readings' misfit over their variance ``s1`` (K, c), ``s2`` (K, c) and of the inverse
-    variances ``w`` (c,) (the level is unknown: the log-likelihood is ``-(s2 - s1^2 / w) / 2``); ``ok`` (K,) nodes
-    that stayed on the map; ``n`` the readings summed."""
+class RivalTrack:
+    """The readings since the cloud was drawn, for the rival-mode check (module docstring, "Rival modes"): ``t0``
+    s the time the cloud was drawn; per reading its value ``z`` (c,), its variance ``var`` (map unit^2) in the
+    rigid-offset likelihood and the cloud's prior mean ``centre`` (2,) m north/east of the cloud's frame then;
+    ``fmap`` the map they were weighted against."""
 
-    ab: FloatArray
-    axes: FloatArray
-    spacing: tuple[float, float]
-    s1: FloatArray
-    s2: FloatArray
-    w: FloatArray
-    ok: NDArray[np.bool_]
-    n: int = 0
-    t0: float = 0.0
+    t0: float
+    z: tuple[FloatArray, ...] = ()
+    var: tuple[float, ...] = ()
+    centre: tuple[FloatArray, ...] = ()
+    fmap: Any = None
 
-    def offsets_ne(self) -> FloatArray:
-        """The nodes' north/east offsets (K, 2) m from the cloud's prior mean."""
-        return self.ab @ self.axes.T
-
-    def loglik(self) -> FloatArray:
-        """Log-likelihood (K,) of each node (``-inf`` off the map), the level of each component marginalised."""
-        w = np.where(self.w > 0, self.w, 1.0)
-        ll = -0.5 * np.sum(self.s2 - self.s1**2 / w, axis=1)
-        return np.where(self.ok, ll, -np.inf)
+    def add(self, z: FloatArray, var: float, centre: FloatArray, fmap: FieldMap) -> RivalTrack:
+        return RivalTrack(self.t0, (*self.z, z), (*self.var, var), (*self.centre, centre), fmap)
 
 
 @dataclass
@@ -207,7 +197,7 @@ class ParticleState:
     recent_nis: tuple[tuple[float, float], ...] = ()
     fault: str = ""
     faults: int = 0
-    rivals: RivalGrid | None = None
+    rivals: RivalTrack | None = None
 
 
 @nb.njit(cache=True)
@@ -479,44 +469,17 @@ class ParticleFilter:
         st.dv = dv
         st.prior_mean, st.prior_cov = prior_mean, prior_cov
         st.p_vv = vv_now
-        if self.init == "gaussian":
-            st.rivals = self._rival_grid(c_pp, float(nav.t))
+        if self.init == "gaussian" and self.rival_grid and self.fix_output == "increment":
+            st.rivals = RivalTrack(float(nav.t))
         return st
 
-    def _rival_grid(self, p_pos: FloatArray, t0: float) -> RivalGrid | None:
-        """An empty :class:`RivalGrid` over the cloud's prior region: ``rival_grid`` nodes a side along the
-        principal axes of the prior position covariance ``p_pos`` (2, 2) m^2 (the inflated one the cloud is drawn
-        from), out to the prior-consistency test's radius (its 99.9 % region); None when off or in the posterior
-        mode (module docstring, "Rival modes")."""
-        if self.rival_grid == 0 or self.fix_output != "increment":
-            return None
-        lam, vec = np.linalg.eigh(0.5 * (p_pos + p_pos.T))
-        if not (np.all(np.isfinite(lam)) and lam[0] > 0):
-            return None
-        half = np.sqrt(_PRIOR_CONSISTENCY_CHI2 * lam)
-        k = int(self.rival_grid) // 2
-        a, b = np.linspace(-half[0], half[0], 2 * k + 1), np.linspace(-half[1], half[1], 2 * k + 1)
-        A, B = np.meshgrid(a, b, indexing="ij")
-        kk = A.size
-        return RivalGrid(
-            np.column_stack([A.ravel(), B.ravel()]), vec, (float(a[1] - a[0]), float(b[1] - b[0])),
-            np.zeros((kk, 0)), np.zeros((kk, 0)), np.zeros(0), np.ones(kk, bool), 0, t0,
-        )  # fmt: skip
-
-    def _rival_update(self, state: ParticleState, fmap: FieldMap, z: FloatArray, var: float) -> RivalGrid | None:
-        """The grid's sums with the reading ``z`` (c,) of variance ``var`` (map unit^2: sensor + map error,
-        tempered for the error's correlation) added, each node moved with the cloud's prior mean."""
+    def _rival_track(self, state: ParticleState, fmap: FieldMap, z: FloatArray, var: float) -> RivalTrack | None:
+        """The track with the reading ``z`` (c,) of variance ``var`` (map unit^2) added at the cloud's prior mean."""
         g = state.rivals
         if g is None or state.prior_mean is None or not (np.isfinite(var) and var > 0):
             return g
         ip = [0, 1] if self.dynamics == "ins" else [0, 3]
-        nodes = g.offsets_ne() + state.prior_mean[ip]
-        m = sample_map(fmap, state.frame, nodes[:, 0], nodes[:, 1], None).reshape(len(nodes), -1)
-        ok = g.ok & np.all(np.isfinite(m), axis=1)
-        r = np.where(ok[:, None], z[None, :] - m, 0.0)
-        if g.s1.shape[1] != r.shape[1]:
-            g = replace(g, s1=np.zeros_like(r), s2=np.zeros_like(r), w=np.zeros(r.shape[1]))
-        return replace(g, s1=g.s1 + r / var, s2=g.s2 + r * r / var, w=g.w + 1.0 / var, ok=ok, n=g.n + 1)
+        return g.add(np.asarray(z, float).copy(), float(var), np.asarray(state.prior_mean[ip], float).copy(), fmap)
 
     def _rival_variance(
         self, state: ParticleState, fisher: FloatArray | None, s2v: float, sm2: float, err: MapErrorModel
@@ -530,26 +493,61 @@ class ParticleFilter:
         temper = float(np.clip(ell / ds, 1.0, None)) if (np.isfinite(ell) and ell > 0 and ds > 0) else 1.0
         var = s2v + temper * sm2
         g = state.rivals
-        if g is not None and fisher is not None and state.prior_cov is not None:
+        if g is not None and fisher is not None and state.prior_cov is not None and self.dynamics == "ins":
             old = state.fisher[3:7] if state.fisher is not None else np.zeros(4)
             g2 = float(fisher[3] - old[0] + fisher[6] - old[3])  # |g|^2 of this reading
-            iv = [2, 3]  # the INS velocity error (rival grids are for INS dynamics)
+            iv = [2, 3]  # the INS velocity error
             dt = state.t - g.t0
             var += max(g2, 0.0) * float(np.trace(state.prior_cov[np.ix_(iv, iv)])) * 0.5 * dt * dt
         return var
 
-    def _rival_cover(self, state: ParticleState, d_fix: FloatArray, r: FloatArray) -> tuple[FloatArray, int]:
-        """Covariance (2, 2) m^2 covering the rival modes of the grid's likelihood about the increment's offset
-        ``d_fix`` (2,) m from the prior mean (:func:`._batch.rival_moment` in the grid's axes, rotated back), and
-        how many there are; rivals are at least 3 increment sigmas (``r`` (2, 2) m^2) and two nodes away."""
+    def _rival_cover(
+        self, state: ParticleState, d_fix: FloatArray, r: FloatArray, p0: FloatArray
+    ) -> tuple[FloatArray, int]:
+        """Covariance (2, 2) m^2 covering the rival modes of the readings' rigid-offset likelihood about the
+        increment's offset ``d_fix`` (2,) m from the prior mean, and how many there are (module docstring, "Rival
+        modes"). The offsets form a ``rival_grid`` x ``rival_grid`` grid along the principal axes of the cloud's
+        prior position covariance ``p0`` (2, 2) m^2, out to the prior-consistency radius (its 99.9 % region); the
+        level of each component is marginalised; a node off the map for some readings counts its others (its
+        chi-square scaled up), one off for more than half is out. Rivals (:func:`._batch.rival_moment`, in the
+        grid's axes, rotated back) are at least 3 increment sigmas (``r`` (2, 2) m^2) and two nodes away."""
         g = state.rivals
-        if g is None or g.n < 2:
+        if g is None or len(g.z) < 2 or g.fmap is None:
             return np.zeros((2, 2)), 0
-        ab_fix = g.axes.T @ np.asarray(d_fix, float)
-        sep = max(3.0 * float(np.sqrt(np.max(np.linalg.eigvalsh(r)))), 2.0 * max(g.spacing))
-        mom, k = rival_moment(g.loglik(), g.ab[:, 0] - ab_fix[0], g.ab[:, 1] - ab_fix[1], g.spacing, sep,
-                              self.rival_peak_ratio)  # fmt: skip
-        return g.axes @ mom @ g.axes.T, k
+        fmap = g.fmap
+        lam, axes = np.linalg.eigh(0.5 * (p0 + p0.T))
+        if not (np.all(np.isfinite(lam)) and lam[0] > 0):
+            return np.zeros((2, 2)), 0
+        half = np.sqrt(_PRIOR_CONSISTENCY_CHI2 * lam)
+        k = int(self.rival_grid) // 2  # type: ignore[arg-type]
+        a, b = np.linspace(-half[0], half[0], 2 * k + 1), np.linspace(-half[1], half[1], 2 * k + 1)
+        A, B = np.meshgrid(a, b, indexing="ij")
+        ab = np.column_stack([A.ravel(), B.ravel()])
+        off = ab @ axes.T  # (K, 2) north/east
+        T = len(g.z)
+        sel = np.unique(np.linspace(0, T - 1, min(T, RIVAL_MAX_READINGS)).round().astype(int))
+        thin = T / len(sel)  # each kept reading stands for this many: its variance scaled to keep the information
+        kk, c = len(off), np.size(g.z[0])
+        s1, s2, w = np.zeros((kk, c)), np.zeros((kk, c)), np.zeros((kk, c))
+        n_ok = np.zeros(kk)
+        for i in sel:
+            nodes = off + g.centre[i]
+            m = sample_map(fmap, state.frame, nodes[:, 0], nodes[:, 1], None).reshape(kk, -1)
+            ok = np.all(np.isfinite(m), axis=1)
+            v = g.var[i] * thin
+            res = np.where(ok[:, None], g.z[i][None, :] - m, 0.0)
+            s1 += res / v
+            s2 += res * res / v
+            w += ok[:, None] / v
+            n_ok += ok
+        good = n_ok > 0.5 * len(sel)
+        ll = -0.5 * np.sum(s2 - s1**2 / np.where(w > 0, w, 1.0), axis=1) * len(sel) / np.maximum(n_ok, 1.0)
+        ll = np.where(good, ll, -np.inf)
+        ab_fix = axes.T @ np.asarray(d_fix, float)
+        spacing = (float(a[1] - a[0]), float(b[1] - b[0]))
+        sep = max(3.0 * float(np.sqrt(np.max(np.linalg.eigvalsh(r)))), 2.0 * max(spacing))
+        mom, n = rival_moment(ll, ab[:, 0] - ab_fix[0], ab[:, 1] - ab_fix[1], spacing, sep, self.rival_peak_ratio)
+        return axes @ mom @ axes.T, n
 
     def predict(self, state: ParticleState, prior: NavEstimate) -> ParticleState:
         """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones.
@@ -718,7 +716,7 @@ class ParticleFilter:
         nis = float(state.extra.get("nis_sum", 0.0))
         r = r * misfit_factor(nis, n_nis)  # the readings missed their forecasts by more than the model allows
         r = _cramer_rao_floor(r, _fisher_bound(state.fisher, self.level_sigma is None))
-        cover, n_rivals = self._rival_cover(state, z - mu0, r)
+        cover, n_rivals = self._rival_cover(state, z - mu0, r, p0)
         r = r + cover  # the readings fit elsewhere in the prior region too: the fix's covariance says so
         sig = float(np.sqrt(np.linalg.eigvalsh(r)[-1]))
         max_sig = (
@@ -799,7 +797,7 @@ class ParticleFilter:
         # that alone gave confident along-track fixes hundreds of metres off on a featureless stretch
         sm2 = np.full(len(sm2), float(w @ sm2))
         fisher = _fisher_step(state, fmap, lat, lon, w, sm2, s2v, err.correlation_m)
-        rivals = self._rival_update(state, fmap, z, self._rival_variance(state, fisher, s2v, float(sm2[0]), err))
+        rivals = self._rival_track(state, fmap, z, self._rival_variance(state, fisher, s2v, float(sm2[0]), err))
         sm2 = sm2[:, None] * np.ones((1, ncomp))
         st = self._level_error_predict(state, sm2, err.correlation_m, ncomp)
         resid = np.where(ok[:, None], z[None, :] - m, 0.0)  # (M, c)
