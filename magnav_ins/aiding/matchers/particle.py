@@ -160,18 +160,23 @@ _ROAD_RESAMPLE = 0.5
 @dataclass(frozen=True)
 class RivalTrack:
     """The readings since the cloud was drawn, for the rival-mode check (module docstring, "Rival modes"): ``t0``
-    s the time the cloud was drawn; per reading its value ``z`` (c,), its variance ``var`` (map unit^2) in the
-    rigid-offset likelihood and the cloud's prior mean ``centre`` (2,) m north/east of the cloud's frame then;
-    ``fmap`` the map they were weighted against."""
+    s the time the cloud was drawn; per reading its time ``t`` s, value ``z`` (c,), its variance ``var`` (map
+    unit^2: sensor + map error) in the rigid-offset likelihood, the squared map gradient ``g2`` (unit^2/m^2) at the
+    cloud and the cloud's prior mean ``centre`` (2,) m north/east of the cloud's frame then; ``fmap`` the map they
+    were weighted against."""
 
     t0: float
+    t: tuple[float, ...] = ()
     z: tuple[FloatArray, ...] = ()
     var: tuple[float, ...] = ()
+    g2: tuple[float, ...] = ()
     centre: tuple[FloatArray, ...] = ()
     fmap: Any = None
 
-    def add(self, z: FloatArray, var: float, centre: FloatArray, fmap: FieldMap) -> RivalTrack:
-        return RivalTrack(self.t0, (*self.z, z), (*self.var, var), (*self.centre, centre), fmap)
+    def add(self, t: float, z: FloatArray, var: float, g2: float, centre: FloatArray, fmap: FieldMap) -> RivalTrack:
+        return RivalTrack(
+            self.t0, (*self.t, t), (*self.z, z), (*self.var, var), (*self.g2, g2), (*self.centre, centre), fmap
+        )
 
 
 @dataclass
@@ -495,33 +500,35 @@ class ParticleFilter:
             st.rivals = RivalTrack(float(nav.t))
         return st
 
-    def _rival_track(self, state: ParticleState, fmap: FieldMap, z: FloatArray, var: float) -> RivalTrack | None:
-        """The track with the reading ``z`` (c,) of variance ``var`` (map unit^2) added at the cloud's prior mean."""
+    def _rival_track(
+        self,
+        state: ParticleState,
+        fmap: FieldMap,
+        z: FloatArray,
+        fisher: FloatArray | None,
+        s2v: float,
+        sm2: float,
+        err: MapErrorModel,
+    ) -> RivalTrack | None:
+        """The track with the reading ``z`` (c,) added at the cloud's prior mean: its variance is sensor ``s2v`` +
+        map error ``sm2`` counted ``ell / ds`` times (readings ``ds`` apart within one correlation length ``ell``
+        share their map error, as :func:`._batch.reading_variance`); ``|g|^2`` from the Fisher sums ``fisher``."""
         g = state.rivals
-        if g is None or state.prior_mean is None or not (np.isfinite(var) and var > 0):
+        if g is None or state.prior_mean is None:
             return g
-        ip = [0, 1] if self.dynamics == "ins" else [0, 3]
-        return g.add(np.asarray(z, float).copy(), float(var), np.asarray(state.prior_mean[ip], float).copy(), fmap)
-
-    def _rival_variance(
-        self, state: ParticleState, fisher: FloatArray | None, s2v: float, sm2: float, err: MapErrorModel
-    ) -> float:
-        """Variance (map unit^2) of this reading in the rigid-offset likelihood: sensor ``s2v`` + map error ``sm2``
-        counted ``ell / ds`` times (readings ``ds`` apart within one correlation length ``ell`` share their map
-        error, as :func:`._batch.reading_variance`) + the misfit of the cloud's INS velocity error over the time
-        since it was drawn (the particles' tracks are not rigid: ``|g|^2 tr(P_vv) dt^2 / 2``, ``g`` the map
-        gradient at the cloud, from the Fisher sums)."""
         ell, ds = float(err.correlation_m), float(state.extra.get("moved_m", 0.0))
         temper = float(np.clip(ell / ds, 1.0, None)) if (np.isfinite(ell) and ell > 0 and ds > 0) else 1.0
         var = s2v + temper * sm2
-        g = state.rivals
-        if g is not None and fisher is not None and state.prior_cov is not None and self.dynamics == "ins":
+        if not (np.isfinite(var) and var > 0):
+            return g
+        g2 = 0.0
+        if fisher is not None:
             old = state.fisher[3:7] if state.fisher is not None else np.zeros(4)
-            g2 = float(fisher[3] - old[0] + fisher[6] - old[3])  # |g|^2 of this reading
-            iv = [2, 3]  # the INS velocity error
-            dt = state.t - g.t0
-            var += max(g2, 0.0) * float(np.trace(state.prior_cov[np.ix_(iv, iv)])) * 0.5 * dt * dt
-        return var
+            g2 = max(float(fisher[3] - old[0] + fisher[6] - old[3]), 0.0)  # |g|^2 of this reading
+        ip = [0, 1] if self.dynamics == "ins" else [0, 3]
+        return g.add(
+            state.t, np.asarray(z, float).copy(), float(var), g2, np.asarray(state.prior_mean[ip]).copy(), fmap
+        )
 
     def _rival_cover(
         self, state: ParticleState, d_fix: FloatArray, r: FloatArray, p0: FloatArray
@@ -549,6 +556,9 @@ class ParticleFilter:
         T = len(g.z)
         sel = np.unique(np.linspace(0, T - 1, min(T, RIVAL_MAX_READINGS)).round().astype(int))
         thin = T / len(sel)  # each kept reading stands for this many: its variance scaled to keep the information
+        tr_vv = 0.0  # the INS velocity error (the cloud's, without its inflation): the tracks are rigid up to it
+        if self.dynamics == "ins" and state.prior_cov is not None:
+            tr_vv = float(np.trace(state.prior_cov[2:4, 2:4])) / self.prior_inflation**2
         kk, c = len(off), np.size(g.z[0])
         s1, s2, w = np.zeros((kk, c)), np.zeros((kk, c)), np.zeros((kk, c))
         n_ok = np.zeros(kk)
@@ -556,7 +566,7 @@ class ParticleFilter:
             nodes = off + g.centre[i]
             m = sample_map(fmap, state.frame, nodes[:, 0], nodes[:, 1], None).reshape(kk, -1)
             ok = np.all(np.isfinite(m), axis=1)
-            v = g.var[i] * thin
+            v = (g.var[i] + g.g2[i] * tr_vv * 0.5 * (state.t - g.t[i]) ** 2) * thin
             res = np.where(ok[:, None], g.z[i][None, :] - m, 0.0)
             s1 += res / v
             s2 += res * res / v
@@ -564,6 +574,7 @@ class ParticleFilter:
             n_ok += ok
         good = n_ok > 0.5 * len(sel)
         ll = -0.5 * np.sum(s2 - s1**2 / np.where(w > 0, w, 1.0), axis=1) * len(sel) / np.maximum(n_ok, 1.0)
+        ll = ll - 0.5 * np.einsum("ki,ij,kj->k", off, np.linalg.inv(p0), off)  # rivals of the posterior
         ll = np.where(good, ll, -np.inf)
         ab_fix = axes.T @ np.asarray(d_fix, float)
         spacing = (float(a[1] - a[0]), float(b[1] - b[0]))
@@ -819,7 +830,7 @@ class ParticleFilter:
         # that alone gave confident along-track fixes hundreds of metres off on a featureless stretch
         sm2 = np.full(len(sm2), float(w @ sm2))
         fisher = _fisher_step(state, fmap, lat, lon, w, sm2, s2v, err.correlation_m)
-        rivals = self._rival_track(state, fmap, z, self._rival_variance(state, fisher, s2v, float(sm2[0]), err))
+        rivals = self._rival_track(state, fmap, z, fisher, s2v, float(sm2[0]), err)
         sm2 = sm2[:, None] * np.ones((1, ncomp))
         st = self._level_error_predict(state, sm2, err.correlation_m, ncomp)
         resid = np.where(ok[:, None], z[None, :] - m, 0.0)  # (M, c)
