@@ -93,16 +93,17 @@ km along the track by the INS velocity error settled on a wrong along-track mode
 cloud's prior mean at each reading) against a grid of offsets along the principal axes of the cloud's current prior
 position covariance, out to the prior-consistency radius (its 99.9 % region): a Gaussian likelihood with the level
 of each component marginalised and, per reading, variance = sensor + map error counted ``ell / ds`` times (readings
-within one correlation length share their map error) + the misfit of the INS velocity error over the time since
-the cloud was drawn (``|g|^2 tr(P_vv) dt^2 / 2``: the particles' tracks are rigid only up to it). Its local maxima
-at least 3 increment sigmas (and two nodes) away holding at least ``rival_peak_ratio`` of the best density are the
-rivals; the increment's covariance gets their second moment about the increment, each weighted by its share of the
-peaks' density (:func:`._batch.rival_moment`, as ICCP's and TERCOM's ``cover_rivals``). A fix whose cover takes it
-beyond ``max_fix_sigma_m`` is a "no fix" whose reason starts with "ambiguous: N rival mode(s)". The check looks only
-at the readings' likelihood (the cloud's own weights already hold the prior): a cloud that sits at its likelihood's
-only peak is unchanged. On a field that repeats every 40 m along the track (``tests/test_matchers_map_error.py``)
-without it 12 of 24 issued fixes sat a period or more off, mean NEES 7,069; with it 7 were issued, NEES 1.7, and 20
-refused as ambiguous.
+within one correlation length share their map error) + the misfit of the INS velocity error between the reading
+and the fix (``|g|^2 tr(P_vv) dt^2 / 2``, ``P_vv`` the cloud's velocity covariance without its inflation: the
+particles' tracks are rigid only up to it), times the cloud's prior (as bayes_grid's ``rivals_of = "posterior"``:
+a mode the prior all but excludes is no rival). Its local maxima at least 3 increment sigmas (and two nodes) away
+holding at least ``rival_peak_ratio`` of the best density are the rivals; the increment's covariance gets their
+second moment about the increment, each weighted by its share of the peaks' density (:func:`._batch.rival_moment`,
+as ICCP's and TERCOM's ``cover_rivals``). A fix whose cover takes it beyond ``max_fix_sigma_m`` is a "no fix" whose
+reason starts with "ambiguous: N rival mode(s)". A cloud at the only peak is unchanged. On a field that repeats
+every 40 m along the track (``tests/test_matchers_map_error.py``) without it 12 of 24 issued fixes sat a period or
+more off, mean NEES 7,069; with it 17 were issued (9 a period or more off, covered), NEES 2.6, and 7 refused as
+ambiguous (rivals of the likelihood alone: 7 issued, NEES 1.7).
 
 Map faults (increment mode; ``fault_window`` readings, default 20, 0 = off; ``fault_probability``, default 0.999).
 Where the map is wrong over a stretch (Rio tie line 9160: up to 500 nT off over ~2 km, 1.7-9x its error layer) the
