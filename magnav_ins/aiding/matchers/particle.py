@@ -262,6 +262,22 @@ def _moment_match(x: FloatArray, mean: FloatArray, cov: FloatArray) -> FloatArra
     return mean + (lc @ np.linalg.solve(ls, d.T)).T
 
 
+def _loewner_max(a: FloatArray, b: FloatArray) -> FloatArray:
+    """The smallest covariance (2, 2) at least as large as both ``a`` and ``b`` in every direction found by whitening
+    ``a`` (each eigenvalue of ``b`` in ``a``'s whitened frame raised to 1); ``a`` or ``b`` when the other is zero."""
+    ta, tb = float(np.trace(a)), float(np.trace(b))
+    if tb <= 0:
+        return a
+    if ta <= 0:
+        return b
+    a = 0.5 * (a + a.T) + np.eye(2) * 1e-9 * ta
+    lc = np.linalg.cholesky(a)
+    li = np.linalg.inv(lc)
+    w, v = np.linalg.eigh(li @ (0.5 * (b + b.T)) @ li.T)
+    out = lc @ (v * np.maximum(w, 1.0)) @ v.T @ lc.T
+    return 0.5 * (out + out.T)
+
+
 def _psd_part(a: FloatArray) -> FloatArray:
     """The positive semi-definite part of a symmetric matrix (negative eigenvalues set to 0)."""
     a = 0.5 * (a + a.T)
@@ -581,7 +597,14 @@ class ParticleFilter:
         spacing = (float(a[1] - a[0]), float(b[1] - b[0]))
         sep = max(3.0 * float(np.sqrt(np.max(np.linalg.eigvalsh(r)))), 2.0 * max(spacing))
         mom, n = rival_moment(ll, ab[:, 0] - ab_fix[0], ab[:, 1] - ab_fix[1], spacing, sep, self.rival_peak_ratio)
-        return axes @ mom @ axes.T, n
+        mom = axes @ mom @ axes.T
+        if np.any(np.isfinite(ll)):  # the posterior's mass beyond 3 increment sigmas (one broad hill, not peaks)
+            lk = np.exp(ll - np.max(ll))
+            d = (ab - ab_fix) @ axes.T
+            far = np.einsum("ki,ij,kj->k", d, np.linalg.inv(r), d) > _CLOUD_TAIL_CHI2
+            wk = lk[far] / lk.sum()
+            mom = _loewner_max(mom, (d[far] * wk[:, None]).T @ d[far])
+        return mom, n
 
     def predict(self, state: ParticleState, prior: NavEstimate) -> ParticleState:
         """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones.
