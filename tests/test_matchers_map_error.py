@@ -501,7 +501,7 @@ def test_particle_ins_covers_or_refuses_along_track_rival_modes():
     assert off_wrong >= 8 and np.mean(off_nees) > 100.0, (off_wrong, off_nees)  # the failure (12 of 24; 7069)
     on_nees, on_reasons, on_wrong = run(101)
     assert sum(r.startswith("ambiguous:") and "rival mode" in r for r in on_reasons) >= 4, on_reasons  # 7
-    # 17 issued (9 a period or more off, their covariance covering the truth's mode), mean NEES 2.6 with seed 1
+    # 16 issued (8 a period or more off, their covariance covering the truth's mode), mean NEES 1.2 with seed 1
     assert len(on_nees) >= 10 and on_wrong >= 3 and np.mean(on_nees) <= 3.0, on_nees
 
 
