@@ -512,3 +512,21 @@ def test_particle_rival_grid_validated():
         build_matcher({"kind": "particle_ins", "rival_peak_ratio": 0.0})
     assert build_matcher({"kind": "particle"}).rival_grid == 0  # Gauss-Markov clouds: off by default
     assert build_matcher({"kind": "particle_ins"}).rival_grid == 101
+
+
+def test_loewner_max_covers_both_and_is_tight():
+    """The rival cover's Loewner maximum: at least both covariances in every direction, and equal to the larger one
+    when they are ordered (nothing added beyond what either says)."""
+    from magnav_ins.aiding.matchers.particle import _loewner_max
+
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        x, y = rng.normal(size=(2, 2)), rng.normal(size=(2, 2))
+        a, b = x @ x.T + 1e-3 * np.eye(2), y @ y.T + 1e-3 * np.eye(2)
+        m = _loewner_max(a, b)
+        assert np.linalg.eigvalsh(m - a).min() > -1e-9 and np.linalg.eigvalsh(m - b).min() > -1e-9
+        assert np.allclose(_loewner_max(a, a + b), a + b, rtol=1e-6)
+    z = np.zeros((2, 2))
+    assert np.array_equal(_loewner_max(z, np.eye(2)), np.eye(2)) and np.array_equal(
+        _loewner_max(np.eye(2), z), np.eye(2)
+    )
