@@ -77,11 +77,36 @@ definite) or the fix 1-sigma would exceed ``max_fix_sigma_m`` (default: twice th
 
 The fix covariance contains: sensor noise, the map error (variance and along-track correlation), the unknown level,
 the INS velocity error and random walk over the time since the cloud was drawn (all through the particles'
-weights), the cloud's shape (multi-modality beyond the ambiguity limit gives no fix), the readings' forecast misfit
+weights), the cloud's shape (multi-modality beyond the ambiguity limit gives no fix), the readings' rival modes in the prior
+region ("Rival modes" below), the readings' forecast misfit
 (the covariance scaled by the NIS per reading when it exceeds its 99 % quantile), and a floor: the increment is never
 tighter than the Cramer-Rao bound of its readings (:func:`_fisher_bound`: the map gradients along the cloud's track,
 the level projected out, the correlated map error counted by the effective number of readings). The cloud's
 weighted moments alone were up to 5x tighter than that bound on a featureless stretch of the Rio tie lines.
+
+Rival modes (increment mode, INS dynamics; ``rival_grid`` nodes a side, default 101, 0 = off; ``rival_peak_ratio``,
+default ``RIVAL_PEAK_RATIO`` = 0.01). Resampling keeps the cloud where the prior and the readings agree best and
+forgets every other place the readings fit: on a nearly one-dimensional field (the Rio tie lines) a cloud spread
+km along the track by the INS velocity error settled on a wrong along-track mode 5-9 km off and reported it with a
+0.6-3.3 km sigma (fix NEES 38-93). At each fix attempt the readings since the cloud was drawn (at most
+``RIVAL_MAX_READINGS``, evenly thinned, each variance scaled by the thinning) are matched as a rigid track (the
+cloud's prior mean at each reading) against a grid of offsets along the principal axes of the cloud's current prior
+position covariance, out to the prior-consistency radius (its 99.9 % region): a Gaussian likelihood with the level
+of each component marginalised and, per reading, variance = sensor + map error counted ``ell / ds`` times (readings
+within one correlation length share their map error) + the misfit of the INS velocity error between the reading
+and the fix (``|g|^2 tr(P_vv) dt^2 / 2``, ``P_vv`` the cloud's velocity covariance without its inflation: the
+particles' tracks are rigid only up to it), times the cloud's prior (as bayes_grid's ``rivals_of = "posterior"``:
+a mode the prior all but excludes is no rival). Its local maxima at least 3 increment sigmas (and two nodes) away
+holding at least ``rival_peak_ratio`` of the best density are the rivals: their second moment about the increment,
+each weighted by its share of the peaks' density (:func:`._batch.rival_moment`, as ICCP's and TERCOM's
+``cover_rivals``); and since a wrong mode need not be a separate peak (on Rio 9180 the truth sat 4-8 km along the
+line on the same broad hill as the fix, 0.2-1.1 nats below its top), the second moment about the increment of the
+grid posterior's mass more than 3 increment sigmas away. The increment's covariance gets the larger of the two
+(their Loewner maximum). A fix whose cover takes it beyond ``max_fix_sigma_m`` is a "no fix"; with rival peaks its
+reason starts with "ambiguous: N rival mode(s)". A cloud whose increment already spans the posterior is unchanged.
+On a field that repeats every 40 m along the track (``tests/test_matchers_map_error.py``) without the check 12 of
+24 issued fixes sat a period or more off, mean NEES 7,069; with it 16 were issued (8 a period or more off,
+covered), NEES 1.2 (rival peaks only: 17, NEES 2.6; rivals of the likelihood alone, without the prior: 7, NEES 1.7).
 
 Map faults (increment mode; ``fault_window`` readings, default 20, 0 = off; ``fault_probability``, default 0.999).
 Where the map is wrong over a stretch (Rio tie line 9160: up to 500 nT off over ~2 km, 1.7-9x its error layer) the
@@ -112,6 +137,7 @@ from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ..gating import chi2_threshold
+from ._batch import RIVAL_PEAK_RATIO, rival_moment
 from ._local import LocalFrame, feature_variability, map_components, sample_map
 from .map_error import INTEGRAL_SCALE, MapErrorModel, markov_coefficient, misfit_factor, resolve_map_error
 
@@ -123,10 +149,38 @@ _CLOUD_TAIL_CHI2 = 9.0
 #: an increment is issued only if the cloud's mean and the increment are within the 99.9 % region (chi-square 2 dof)
 #: of the prior the cloud was drawn from: otherwise the likelihood peaks where there are no particles
 _PRIOR_CONSISTENCY_CHI2 = 13.8155
+#: nodes a side of the rival-mode grid (``rival_grid``, INS dynamics): 101 spans a 25 km prior region (Rio's
+#: tactical priors after 10 minutes) at 250 m, the Rio map's node spacing
+RIVAL_GRID = 101
+#: at most this many readings (evenly thinned, their variances scaled to keep the total information) enter the
+#: rival check: ~0.05 s of map lookups per fix attempt on a 101 x 101 grid
+RIVAL_MAX_READINGS = 100
 #: after the road penalty the cloud is resampled when its effective sample size drops below this fraction (at most
 #: ``resample_threshold``): a likelihood applied at every prediction would otherwise, resampled each time, wear the
 #: cloud down to a few particles between readings
 _ROAD_RESAMPLE = 0.5
+
+
+@dataclass(frozen=True)
+class RivalTrack:
+    """The readings since the cloud was drawn, for the rival-mode check (module docstring, "Rival modes"): ``t0``
+    s the time the cloud was drawn; per reading its time ``t`` s, value ``z`` (c,), its variance ``var`` (map
+    unit^2: sensor + map error) in the rigid-offset likelihood, the squared map gradient ``g2`` (unit^2/m^2) at the
+    cloud and the cloud's prior mean ``centre`` (2,) m north/east of the cloud's frame then; ``fmap`` the map they
+    were weighted against."""
+
+    t0: float
+    t: tuple[float, ...] = ()
+    z: tuple[FloatArray, ...] = ()
+    var: tuple[float, ...] = ()
+    g2: tuple[float, ...] = ()
+    centre: tuple[FloatArray, ...] = ()
+    fmap: Any = None
+
+    def add(self, t: float, z: FloatArray, var: float, g2: float, centre: FloatArray, fmap: FieldMap) -> RivalTrack:
+        return RivalTrack(
+            self.t0, (*self.t, t), (*self.z, z), (*self.var, var), (*self.g2, g2), (*self.centre, centre), fmap
+        )
 
 
 @dataclass
@@ -173,6 +227,7 @@ class ParticleState:
     recent_nis: tuple[tuple[float, float], ...] = ()
     fault: str = ""
     faults: int = 0
+    rivals: RivalTrack | None = None
 
 
 @nb.njit(cache=True)
@@ -208,6 +263,22 @@ def _moment_match(x: FloatArray, mean: FloatArray, cov: FloatArray) -> FloatArra
     except np.linalg.LinAlgError:
         return x
     return mean + (lc @ np.linalg.solve(ls, d.T)).T
+
+
+def _loewner_max(a: FloatArray, b: FloatArray) -> FloatArray:
+    """The smallest covariance (2, 2) at least as large as both ``a`` and ``b`` in every direction found by whitening
+    ``a`` (each eigenvalue of ``b`` in ``a``'s whitened frame raised to 1); ``a`` or ``b`` when the other is zero."""
+    ta, tb = float(np.trace(a)), float(np.trace(b))
+    if tb <= 0:
+        return a
+    if ta <= 0:
+        return b
+    a = 0.5 * (a + a.T) + np.eye(2) * 1e-9 * ta
+    lc = np.linalg.cholesky(a)
+    li = np.linalg.inv(lc)
+    w, v = np.linalg.eigh(li @ (0.5 * (b + b.T)) @ li.T)
+    out = lc @ (v * np.maximum(w, 1.0)) @ v.T @ lc.T
+    return 0.5 * (out + out.T)
 
 
 def _psd_part(a: FloatArray) -> FloatArray:
@@ -318,7 +389,8 @@ class ParticleFilter:
     ``resample_threshold``, ``roughening``, ``roughen_min_m``; ``min_variability`` and ``flat_window_m`` (flat-map
     test); ``fix_output`` "increment" | "posterior"; ``ambiguity_mass``; ``max_fix_sigma_m``; ``start_at_rest``
     (particles start with zero velocity); ``fault_window`` (readings, 0 = off) and ``fault_probability``: the
-    map-fault monitor (module docstring, "Map faults")."""
+    map-fault monitor (module docstring, "Map faults"); ``rival_grid`` (nodes a side; None = 101 with INS dynamics,
+    0 = off, the Gauss-Markov default) and ``rival_peak_ratio``: the rival-mode check ("Rival modes")."""
 
     n_particles: int = 500
     dynamics: str = "gauss_markov"
@@ -347,6 +419,8 @@ class ParticleFilter:
     start_at_rest: bool = False
     fault_window: int = 20
     fault_probability: float = 0.999
+    rival_grid: int | None = None
+    rival_peak_ratio: float = RIVAL_PEAK_RATIO
     name: str = "particle"
 
     def __post_init__(self) -> None:
@@ -372,6 +446,14 @@ class ParticleFilter:
         if not (isinstance(self.fault_window, int | np.integer) and self.fault_window >= 0):
             raise ConfigError(f"particle 'fault_window': expected an integer >= 0, got {self.fault_window!r}")
         chi2_threshold(1, self.fault_probability)  # validates the probability (a clear error)
+        if self.rival_grid is None:  # the INS-driven cloud's tracks are the INS track's, rigid up to its velocity error
+            self.rival_grid = RIVAL_GRID if self.dynamics == "ins" else 0
+        if isinstance(self.rival_grid, float) and self.rival_grid.is_integer():  # a TOML / JSON number
+            self.rival_grid = int(self.rival_grid)
+        if not (isinstance(self.rival_grid, int | np.integer) and (self.rival_grid == 0 or self.rival_grid >= 5)):
+            raise ConfigError(f"particle 'rival_grid': expected 0 (off) or an integer >= 5, got {self.rival_grid!r}")
+        if not 0.0 < self.rival_peak_ratio <= 1.0:
+            raise ConfigError(f"particle 'rival_peak_ratio': expected 0 < x <= 1, got {self.rival_peak_ratio!r}")
         if self.measurement == "fix" and self.fix_matcher is None:
             from .likelihood import LikelihoodMatcher
 
@@ -434,7 +516,98 @@ class ParticleFilter:
         st.dv = dv
         st.prior_mean, st.prior_cov = prior_mean, prior_cov
         st.p_vv = vv_now
+        if self.init == "gaussian" and self.rival_grid and self.fix_output == "increment":
+            st.rivals = RivalTrack(float(nav.t))
         return st
+
+    def _rival_track(
+        self,
+        state: ParticleState,
+        fmap: FieldMap,
+        z: FloatArray,
+        fisher: FloatArray | None,
+        s2v: float,
+        sm2: float,
+        err: MapErrorModel,
+    ) -> RivalTrack | None:
+        """The track with the reading ``z`` (c,) added at the cloud's prior mean: its variance is sensor ``s2v`` +
+        map error ``sm2`` counted ``ell / ds`` times (readings ``ds`` apart within one correlation length ``ell``
+        share their map error, as :func:`._batch.reading_variance`); ``|g|^2`` from the Fisher sums ``fisher``."""
+        g = state.rivals
+        if g is None or state.prior_mean is None:
+            return g
+        ell, ds = float(err.correlation_m), float(state.extra.get("moved_m", 0.0))
+        temper = float(np.clip(ell / ds, 1.0, None)) if (np.isfinite(ell) and ell > 0 and ds > 0) else 1.0
+        var = s2v + temper * sm2
+        if not (np.isfinite(var) and var > 0):
+            return g
+        g2 = 0.0
+        if fisher is not None:
+            old = state.fisher[3:7] if state.fisher is not None else np.zeros(4)
+            g2 = max(float(fisher[3] - old[0] + fisher[6] - old[3]), 0.0)  # |g|^2 of this reading
+        ip = [0, 1] if self.dynamics == "ins" else [0, 3]
+        return g.add(
+            state.t, np.asarray(z, float).copy(), float(var), g2, np.asarray(state.prior_mean[ip]).copy(), fmap
+        )
+
+    def _rival_cover(
+        self, state: ParticleState, d_fix: FloatArray, r: FloatArray, p0: FloatArray
+    ) -> tuple[FloatArray, int]:
+        """Covariance (2, 2) m^2 covering the rival modes of the readings' rigid-offset likelihood about the
+        increment's offset ``d_fix`` (2,) m from the prior mean, and how many there are (module docstring, "Rival
+        modes"). The offsets form a ``rival_grid`` x ``rival_grid`` grid along the principal axes of the cloud's
+        prior position covariance ``p0`` (2, 2) m^2, out to the prior-consistency radius (its 99.9 % region); the
+        level of each component is marginalised; a node off the map for some readings counts its others (its
+        chi-square scaled up), one off for more than half is out. Rivals (:func:`._batch.rival_moment`, in the
+        grid's axes, rotated back) are at least 3 increment sigmas (``r`` (2, 2) m^2) and two nodes away."""
+        g = state.rivals
+        if g is None or len(g.z) < 2 or g.fmap is None:
+            return np.zeros((2, 2)), 0
+        fmap = g.fmap
+        lam, axes = np.linalg.eigh(0.5 * (p0 + p0.T))
+        if not (np.all(np.isfinite(lam)) and lam[0] > 0):
+            return np.zeros((2, 2)), 0
+        half = np.sqrt(_PRIOR_CONSISTENCY_CHI2 * lam)
+        k = int(self.rival_grid) // 2  # type: ignore[arg-type]
+        a, b = np.linspace(-half[0], half[0], 2 * k + 1), np.linspace(-half[1], half[1], 2 * k + 1)
+        A, B = np.meshgrid(a, b, indexing="ij")
+        ab = np.column_stack([A.ravel(), B.ravel()])
+        off = ab @ axes.T  # (K, 2) north/east
+        T = len(g.z)
+        sel = np.unique(np.linspace(0, T - 1, min(T, RIVAL_MAX_READINGS)).round().astype(int))
+        thin = T / len(sel)  # each kept reading stands for this many: its variance scaled to keep the information
+        tr_vv = 0.0  # the INS velocity error (the cloud's, without its inflation): the tracks are rigid up to it
+        if self.dynamics == "ins" and state.prior_cov is not None:
+            tr_vv = float(np.trace(state.prior_cov[2:4, 2:4])) / self.prior_inflation**2
+        kk, c = len(off), np.size(g.z[0])
+        s1, s2, w = np.zeros((kk, c)), np.zeros((kk, c)), np.zeros((kk, c))
+        n_ok = np.zeros(kk)
+        for i in sel:
+            nodes = off + g.centre[i]
+            m = sample_map(fmap, state.frame, nodes[:, 0], nodes[:, 1], None).reshape(kk, -1)
+            ok = np.all(np.isfinite(m), axis=1)
+            v = (g.var[i] + g.g2[i] * tr_vv * 0.5 * (state.t - g.t[i]) ** 2) * thin
+            res = np.where(ok[:, None], g.z[i][None, :] - m, 0.0)
+            s1 += res / v
+            s2 += res * res / v
+            w += ok[:, None] / v
+            n_ok += ok
+        good = n_ok > 0.5 * len(sel)
+        ll = -0.5 * np.sum(s2 - s1**2 / np.where(w > 0, w, 1.0), axis=1) * len(sel) / np.maximum(n_ok, 1.0)
+        ll = ll - 0.5 * np.einsum("ki,ij,kj->k", off, np.linalg.inv(p0), off)  # rivals of the posterior
+        ll = np.where(good, ll, -np.inf)
+        ab_fix = axes.T @ np.asarray(d_fix, float)
+        spacing = (float(a[1] - a[0]), float(b[1] - b[0]))
+        sep = max(3.0 * float(np.sqrt(np.max(np.linalg.eigvalsh(r)))), 2.0 * max(spacing))
+        mom, n = rival_moment(ll, ab[:, 0] - ab_fix[0], ab[:, 1] - ab_fix[1], spacing, sep, self.rival_peak_ratio)
+        mom = axes @ mom @ axes.T
+        if np.any(np.isfinite(ll)):  # the posterior's mass beyond 3 increment sigmas (one broad hill, not peaks)
+            lk = np.exp(ll - np.max(ll))
+            d = (ab - ab_fix) @ axes.T
+            far = np.einsum("ki,ij,kj->k", d, np.linalg.inv(r), d) > _CLOUD_TAIL_CHI2
+            wk = lk[far] / lk.sum()
+            mom = _loewner_max(mom, (d[far] * wk[:, None]).T @ d[far])
+        return mom, n
 
     def predict(self, state: ParticleState, prior: NavEstimate) -> ParticleState:
         """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones.
@@ -603,6 +776,8 @@ class ParticleFilter:
         nis = float(state.extra.get("nis_sum", 0.0))
         r = r * misfit_factor(nis, n_nis)  # the readings missed their forecasts by more than the model allows
         r = _cramer_rao_floor(r, _fisher_bound(state.fisher, self.level_sigma is None))
+        cover, n_rivals = self._rival_cover(state, z - mu0, r, p0)
+        r = r + cover  # the readings fit elsewhere in the prior region too: the fix's covariance says so
         sig = float(np.sqrt(np.linalg.eigvalsh(r)[-1]))
         max_sig = (
             self.max_fix_sigma_m
@@ -610,9 +785,14 @@ class ParticleFilter:
             else 2.0 * float(np.sqrt(np.linalg.eigvalsh(p0)[-1]))
         )
         if sig > max_sig:
+            why = (
+                f"ambiguous: {n_rivals} rival mode(s) of the readings' likelihood in the prior region; covering them"
+                if n_rivals
+                else "too little new information:"
+            )
             return Fix.no_fix(
                 state.t,
-                f"too little new information: fix sigma {sig:.3g} m above {max_sig:.3g} m ({state.readings} readings)",
+                f"{why} fix sigma {sig:.3g} m above {max_sig:.3g} m ({state.readings} readings)",
                 self.name,
                 state.neff,
             )
@@ -677,11 +857,12 @@ class ParticleFilter:
         # that alone gave confident along-track fixes hundreds of metres off on a featureless stretch
         sm2 = np.full(len(sm2), float(w @ sm2))
         fisher = _fisher_step(state, fmap, lat, lon, w, sm2, s2v, err.correlation_m)
+        rivals = self._rival_track(state, fmap, z, fisher, s2v, float(sm2[0]), err)
         sm2 = sm2[:, None] * np.ones((1, ncomp))
         st = self._level_error_predict(state, sm2, err.correlation_m, ncomp)
         resid = np.where(ok[:, None], z[None, :] - m, 0.0)  # (M, c)
         loglik, st = self._level_error_update(st, resid, s2v)
-        st = replace(st, fisher=fisher)
+        st = replace(st, fisher=fisher, rivals=rivals)
         loglik = np.where(ok, loglik, -np.inf)
         return loglik, st
 
