@@ -899,7 +899,7 @@ class ParticleFilter:
                 jitter = rng.multivariate_normal(np.zeros(2), h2 * cov, size=mg)
                 pg = mean + a * (pg - mean) + jitter
             pos[grp] = pg
-            logw[grp] = top + np.log(tot) - np.log(mg)  # the half keeps its mass
+            logw[grp] = top + np.log(tot) - np.log(mg)  # the sub-cloud keeps its mass
         if not done:
             return replace(state, neff=neff)
         sel = {k: (None if getattr(state, k) is None else getattr(state, k)[idx]) for k in _PER_PARTICLE}
