@@ -122,6 +122,42 @@ reported), and the next :meth:`ParticleFilter.to_fix` is a "no fix" whose reason
 (``ParticleState.faults`` counts them). It cannot see a fault the cloud fits from the start (a wrong place that
 matches the corrupted readings as well as the right one matches good ones): there the fix stays wrong (Rio 9180 and
 9220, README "real-data suite").
+
+Sparse draws (increment mode). Where the prior is kilometres wide (a tactical INS after minutes without a fix) and
+the readings' likelihood tens of metres wide, the draws sample the likelihood's peaks sparsely: each peak's weight
+is that of the draw that happened to land nearest to it, several peaks fit, and within a few resamplings the cloud
+sits on one of them - unimodal, its increment tight, as likely the wrong peak as the right one (the resampling's
+Liu-West kernel helps: on a multi-modal cloud its covariance is the spread between the modes, so each resampling
+scatters the copies off them). A fix right after an attempt refused as "not unimodal" was exactly that (Osborne tie
+line 5817 at 50 m/s, tactical, run 0: 3.6 km off with 210 / 670 m sigmas, NEES 36, after 14 resamplings in 30
+readings; the same run with 5,000 particles issued no such fix and had NEES 1.0 instead of 6.6). Each particle
+carries the draw it descends from (``ParticleState.anc``); the cloud's weight then rests on few draws (the
+ancestral effective sample size ``1 / sum_a W_a^2``, :func:`ancestral_ess`: 2-7 of 500 for such fixes on the
+Osborne tie lines). Below ``min_draws`` (default :data:`MIN_DRAWS_INS` for ``dynamics="ins"``, 0 = off for the
+Gauss-Markov filter, whose particles re-explore by their own acceleration noise between readings while INS-driven
+ones move rigidly with the INS) the attempt is "unresolved" and the cloud condemned - where the prior (largest
+1-sigma) is wider than :data:`SPARSE_PRIOR_ELLS` correlation lengths of the map error: a narrower prior has no room
+for two places the readings fit independently, and there a cloud on few draws is a sharp likelihood well sampled
+(the synthetic flights of the matcher tests, 15 m priors over 21-35 m correlation lengths: honest fixes, 60 % of
+them refused without this condition; the Osborne failures above: priors 1.4-9.5 correlation lengths wide). On a map that repeats itself
+every 600 m (``tests/test_particle_ambiguity.py``, 30 flights, 3 attempts each) the filter then issues no fix that
+picks one copy; without it, 68 of 90 attempts did.
+
+Re-draws. A condemned cloud (too few draws, sub-clouds apart, a map fault) is re-drawn at the next prediction with
+twice the particles of the last one (at most ``max_particle_factor`` times ``n_particles``), back to
+``n_particles`` after the next issued fix: a prior too wide for its draws gets more of them. After ``j`` map faults
+in a row the prior is also widened by ``2^j`` (at most ``max_lost_inflation``): when every cloud drawn from the
+fuser's estimate misses its readings, the fuser has lost track and another cloud from the same prior cannot find
+the truth (Osborne 10156 at 50 m/s, tactical: the monitor condemned cloud after cloud drawn 3-5 km from the truth).
+The increment divides out the prior the cloud was drawn from, so a wider draw gives a weaker fix, not a biased one.
+
+Sub-clouds (``subclouds``, default 1 = off). The cloud as ``S`` independent clouds (the descendants of draws ``k``,
+``k + S``, ...), each resampled and roughened on its own and weighted equally; an attempt whose sub-clouds settled
+further apart than chi-square(2) 99.9 % in the sum of their covariances is "ambiguous" and the cloud condemned.
+Where several places fit, the sub-clouds find different ones unless all pick the same (chance ``sum p_i^S``). On
+the 600 m repeating map 2 sub-clouds issued 7 one-copy fixes in 90 attempts, 3 none; on the Osborne tactical group
+(suite, 132 runs) 2-4 sub-clouds gave NEES 3.0-3.2 against 2.5 with ``min_draws``, and 3 failed the Gauss-Markov
+filter's synthetic honesty test (NEES 3.9: 167 particles a sub-cloud are too few).
 """
 
 from __future__ import annotations
@@ -155,6 +191,13 @@ RIVAL_GRID = 101
 #: at most this many readings (evenly thinned, their variances scaled to keep the total information) enter the
 #: rival check: ~0.05 s of map lookups per fix attempt on a 101 x 101 grid
 RIVAL_MAX_READINGS = 100
+#: the default ``min_draws`` of INS-driven particles (module docstring, "Sparse draws")
+MIN_DRAWS_INS = 10.0
+#: the sparse-draws rule holds where the cloud's prior is wider than this many correlation lengths of the map error
+SPARSE_PRIOR_ELLS = 2.0
+#: the cloud's sub-clouds disagree (no fix, re-drawn) when two means are further apart than this Mahalanobis^2
+#: (chi-square 2 dof, 99.9 %) in the sum of their covariances
+_SUBCLOUD_CHI2 = 13.8155
 #: after the road penalty the cloud is resampled when its effective sample size drops below this fraction (at most
 #: ``resample_threshold``): a likelihood applied at every prediction would otherwise, resampled each time, wear the
 #: cloud down to a few particles between readings
@@ -190,7 +233,9 @@ class ParticleState:
     the INS position of the last prior ``ins_ne`` (2,), the effective sample size ``neff``, the random generator
     ``rng``, the reason of the last rejected update (``""`` if it was used); ``recent_nis`` the forecast NIS and
     its degrees of freedom of the last readings (the map-fault monitor's window), ``fault`` a detected map fault
-    not yet reported by :meth:`ParticleFilter.to_fix`, ``faults`` their count.
+    not yet reported by :meth:`ParticleFilter.to_fix`, ``faults`` their count; ``anc`` (M,) the draw each particle
+    descends from (its sub-cloud is ``anc % subclouds``), ``redraws`` the clouds condemned in a row and ``lost`` the
+    map faults in a row since the last issued fix (module docstring, "Re-draws").
 
     Per particle and field component, the level / map-error filter: means ``lev`` and ``err`` (M, c) and
     covariance ``p_ll``, ``p_le``, ``p_ee`` (M, c); ``lev_set`` False until the first reading has set an unknown
@@ -228,6 +273,9 @@ class ParticleState:
     fault: str = ""
     faults: int = 0
     rivals: RivalTrack | None = None
+    anc: NDArray[np.int64] | None = None
+    redraws: int = 0
+    lost: int = 0
 
 
 @nb.njit(cache=True)
@@ -390,7 +438,9 @@ class ParticleFilter:
     test); ``fix_output`` "increment" | "posterior"; ``ambiguity_mass``; ``max_fix_sigma_m``; ``start_at_rest``
     (particles start with zero velocity); ``fault_window`` (readings, 0 = off) and ``fault_probability``: the
     map-fault monitor (module docstring, "Map faults"); ``rival_grid`` (nodes a side; None = 101 with INS dynamics,
-    0 = off, the Gauss-Markov default) and ``rival_peak_ratio``: the rival-mode check ("Rival modes")."""
+    0 = off, the Gauss-Markov default) and ``rival_peak_ratio``: the rival-mode check ("Rival modes");
+    ``subclouds`` (1 = off), ``max_particle_factor``, ``max_lost_inflation``, ``min_draws`` (0 = off): module
+    docstring, "Sub-clouds" and "Re-draws"."""
 
     n_particles: int = 500
     dynamics: str = "gauss_markov"
@@ -421,6 +471,10 @@ class ParticleFilter:
     fault_probability: float = 0.999
     rival_grid: int | None = None
     rival_peak_ratio: float = RIVAL_PEAK_RATIO
+    max_particle_factor: int = 8
+    subclouds: int = 1
+    min_draws: float | None = None
+    max_lost_inflation: float = 8.0
     name: str = "particle"
 
     def __post_init__(self) -> None:
@@ -454,6 +508,20 @@ class ParticleFilter:
             raise ConfigError(f"particle 'rival_grid': expected 0 (off) or an integer >= 5, got {self.rival_grid!r}")
         if not 0.0 < self.rival_peak_ratio <= 1.0:
             raise ConfigError(f"particle 'rival_peak_ratio': expected 0 < x <= 1, got {self.rival_peak_ratio!r}")
+        if not (isinstance(self.max_particle_factor, int | np.integer) and self.max_particle_factor >= 1):
+            raise ConfigError(
+                f"particle 'max_particle_factor': expected an integer >= 1, got {self.max_particle_factor!r}"
+            )
+        if not (isinstance(self.subclouds, int | np.integer) and 1 <= self.subclouds <= self.n_particles // 2):
+            raise ConfigError(
+                f"particle 'subclouds': expected an integer from 1 to n_particles / 2, got {self.subclouds!r}"
+            )
+        if self.min_draws is None:  # module docstring, "Sparse draws"
+            self.min_draws = MIN_DRAWS_INS if self.dynamics == "ins" else 0.0
+        if not self.min_draws >= 0:
+            raise ConfigError(f"particle 'min_draws': expected >= 0, got {self.min_draws!r}")
+        if not self.max_lost_inflation >= 1:
+            raise ConfigError(f"particle 'max_lost_inflation': expected >= 1, got {self.max_lost_inflation!r}")
         if self.measurement == "fix" and self.fix_matcher is None:
             from .likelihood import LikelihoodMatcher
 
@@ -463,14 +531,21 @@ class ParticleFilter:
     def initiate(self, prior: NavEstimate, rng: np.random.Generator) -> ParticleState:
         """A cloud about the prior position (the prior covariance, or a disc of ``init_radius_m``), with its
         moments without readings (``prior_mean``, ``prior_cov``) for the increment."""
+        return self._draw(prior, rng, 0, 0)
+
+    def _draw(self, prior: NavEstimate, rng: np.random.Generator, redraws: int, lost: int) -> ParticleState:
+        """:meth:`initiate` after ``redraws`` clouds in a row were condemned without issuing a fix (their draws
+        too sparse for the readings, module docstring "Re-draws"): ``n_particles`` times ``2^redraws`` (at most
+        ``max_particle_factor``), and after ``lost`` map faults in a row the prior widened by ``2^lost`` (at most
+        ``max_lost_inflation``)."""
         nav = prior.nav
         frame = LocalFrame(float(nav.lat), float(nav.lon), 0.0)
-        m = self.n_particles
+        m = self.n_particles * min(2**redraws, self.max_particle_factor)
         P = np.asarray(prior.P, float)
         ps, vs = prior.layout["pos"], prior.layout["vel"]
         ip = [ps.start, ps.start + 1]
         iv = [vs.start, vs.start + 1]
-        k2 = self.prior_inflation**2
+        k2 = (self.prior_inflation * min(2.0**lost, self.max_lost_inflation)) ** 2
         c_pp = 0.5 * (P[np.ix_(ip, ip)] + P[np.ix_(ip, ip)].T) * k2
         c_vv = 0.5 * (P[np.ix_(iv, iv)] + P[np.ix_(iv, iv)].T)
         c_pv = P[np.ix_(ip, iv)] * k2
@@ -518,6 +593,8 @@ class ParticleFilter:
         st.p_vv = vv_now
         if self.init == "gaussian" and self.rival_grid and self.fix_output == "increment":
             st.rivals = RivalTrack(float(nav.t))
+        st.anc = np.arange(m)
+        st.redraws, st.lost = redraws, lost
         return st
 
     def _rival_track(
@@ -613,7 +690,7 @@ class ParticleFilter:
         """Move the particles to the prior's time (GM dynamics or the INS increment) and penalise off-road ones.
         After an increment was issued (:meth:`to_fix`), draw a new cloud from ``prior`` instead."""
         if state.issued and self.fix_output == "increment":
-            fresh = self.initiate(prior, state.rng)
+            fresh = self._draw(prior, state.rng, state.redraws, state.lost)
             fresh.fault, fresh.faults = state.fault, state.faults  # a map fault is reported by the next to_fix
             return fresh
         rng = state.rng
@@ -670,7 +747,7 @@ class ParticleFilter:
             lat, lon = state.frame.to_latlon(pos[:, 0], pos[:, 1])
             _, dist, _ = self.road.nearest(lat, lon)
             logw += -0.5 * (np.asarray(dist, float) / self.road_sigma_m) ** 2
-            logw = _normalise(logw)
+            logw = _balance(_normalise(logw), _subclouds(state, self.subclouds))
         st = replace(
             state, t=float(nav.t), h=float(nav.h), pos=pos, vel=vel, acc=acc, logw=logw, ins_ne=ins_ne,
             prior_mean=mean0, prior_cov=cov0, issued=False, dv=dv, p_vv=p_vv_now,
@@ -697,7 +774,7 @@ class ParticleFilter:
                 st = state
         except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
             return replace(state, reason=f"map lookup failed: {exc}")
-        logw = _normalise(st.logw + loglik)
+        logw = _balance(_normalise(st.logw + loglik), _subclouds(st, self.subclouds))
         st = replace(st, logw=logw, reason="", readings=st.readings + 1)
         return self._maybe_resample(self._fault_check(st), rng, force_check=True)
 
@@ -718,7 +795,9 @@ class ParticleFilter:
             f"map fault: the last {w} readings missed the cloud's forecast (NIS {chi2:.1f} above {thr:.1f}, "
             f"{dof} dof) at t = {state.t:.0f} s; the cloud's {state.readings} readings were dropped"
         )
-        return replace(state, fault=reason, faults=state.faults + 1, issued=True)
+        return replace(
+            state, fault=reason, faults=state.faults + 1, issued=True, redraws=state.redraws + 1, lost=state.lost + 1
+        )
 
     def to_fix(self, state: ParticleState) -> Fix:
         """The increment since the cloud was drawn, or the cloud's weighted mean and covariance
@@ -752,6 +831,31 @@ class ParticleFilter:
         if state.prior_cov is None:
             lat, lon = state.frame.to_latlon(mean[0], mean[1])
             return Fix(state.t, float(lat), float(lon), cov, True, "", state.neff, self.name)
+        draws = ancestral_ess(state)
+        if draws < self.min_draws and _room_for_rivals(state, self.dynamics):  # module docstring, "Sparse draws"
+            state.issued = True  # condemned: re-drawn, with more particles, at the next prediction
+            state.redraws += 1
+            return Fix.no_fix(
+                state.t,
+                f"unresolved: the cloud's weight rests on {draws:.1f} of its {len(w)} draws (below {self.min_draws:g}): "
+                "the readings' peak is narrower than the cloud's sampling of its prior, a place between the draws "
+                f"may fit better; re-drawn with {self.n_particles * min(2**state.redraws, self.max_particle_factor)} "
+                "particles",
+                self.name,
+                state.neff,
+            )
+        split, dist = subcloud_disagreement(state, self.subclouds)
+        if split > _SUBCLOUD_CHI2:  # module docstring, "Sub-clouds"
+            state.issued = True  # condemned: re-drawn, with more particles, at the next prediction
+            state.redraws += 1
+            return Fix.no_fix(
+                state.t,
+                f"ambiguous: the cloud's sub-clouds settled {dist:.0f} m apart (Mahalanobis^2 {split:.1f} above "
+                f"{_SUBCLOUD_CHI2:.1f}): the readings fit more than one place and the draws found different ones; "
+                f"re-drawn with {self.n_particles * min(2**state.redraws, self.max_particle_factor)} particles",
+                self.name,
+                state.neff,
+            )
         ip = [0, 1] if self.dynamics == "ins" else [0, 3]
         mu0 = state.prior_mean[ip]  # type: ignore[index]
         p0 = state.prior_cov[np.ix_(ip, ip)]
@@ -811,6 +915,7 @@ class ParticleFilter:
             )
         lat, lon = state.frame.to_latlon(z[0], z[1])
         state.issued = True  # the next prediction draws a new cloud from the fuser's estimate
+        state.redraws, state.lost = 0, 0
         return Fix(state.t, float(lat), float(lon), r, True, "", state.neff, self.name)
 
     # ------------------------------------------------------------------ internals
@@ -940,35 +1045,127 @@ class ParticleFilter:
     def _maybe_resample(
         self, state: ParticleState, rng: np.random.Generator, force_check: bool = False, threshold: float | None = None
     ) -> ParticleState:
+        """SIR resampling (with roughening), each sub-cloud on its own (module docstring, "Sub-clouds"): one
+        whose effective sample size is below the threshold is resampled within itself and keeps its mass."""
         w = np.exp(state.logw)
         neff = float(1.0 / np.sum(w * w))
         m = len(w)
         thr = self.resample_threshold if threshold is None else min(threshold, self.resample_threshold)
-        if force_check and neff < thr * m + 1e-9:
-            idx = _systematic_resample(w, float(rng.uniform()))
-            pos = state.pos[idx]
-            dv = None if state.dv is None else state.dv[idx]
+        if not force_check:
+            return replace(state, neff=neff)
+        idx = np.arange(m)
+        pos = state.pos.copy()
+        logw = state.logw.copy()
+        done = False
+        for grp in _subclouds(state, self.subclouds):
+            lw = state.logw[grp]
+            top = float(np.max(lw)) if len(grp) else -np.inf
+            if not np.isfinite(top):  # a sub-cloud without weight (all off the map) stays as it is
+                continue
+            wg = np.exp(lw - top)
+            tot = float(wg.sum())
+            wg = wg / tot
+            mg = len(grp)
+            if float(1.0 / np.sum(wg * wg)) >= thr * mg - 1e-9:
+                continue
+            done = True
+            loc = _systematic_resample(wg, float(rng.uniform()))
+            idx[grp] = grp[loc]
+            pg = state.pos[grp][loc]
             if self.roughening:  # regularised resampling with Liu-West shrinkage: keeps the mean and covariance
-                mean = w @ state.pos
-                d = state.pos - mean
-                cov = (d * w[:, None]).T @ d + np.eye(2) * self.roughen_min_m**2
-                h2 = (4.0 / (m * 4.0)) ** (2.0 / 6.0)  # Silverman bandwidth^2 for d = 2
+                mean = wg @ state.pos[grp]
+                d = state.pos[grp] - mean
+                cov = (d * wg[:, None]).T @ d + np.eye(2) * self.roughen_min_m**2
+                h2 = (4.0 / (mg * 4.0)) ** (2.0 / 6.0)  # Silverman bandwidth^2 for d = 2
                 a = np.sqrt(1.0 - h2)
-                jitter = rng.multivariate_normal(np.zeros(2), h2 * cov, size=m)
-                pos = mean + a * (pos - mean) + jitter
-            sel = {k: (None if getattr(state, k) is None else getattr(state, k)[idx]) for k in _PER_PARTICLE}
-            return replace(
-                state,
-                pos=pos,
-                vel=state.vel[idx],
-                acc=state.acc[idx],
-                dv=dv,
-                logw=np.full(m, -np.log(m)),
-                neff=neff,
-                resampled=state.resampled + 1,
-                **sel,
-            )
-        return replace(state, neff=neff)
+                jitter = rng.multivariate_normal(np.zeros(2), h2 * cov, size=mg)
+                pg = mean + a * (pg - mean) + jitter
+            pos[grp] = pg
+            logw[grp] = top + np.log(tot) - np.log(mg)  # the sub-cloud keeps its mass
+        if not done:
+            return replace(state, neff=neff)
+        sel = {k: (None if getattr(state, k) is None else getattr(state, k)[idx]) for k in _PER_PARTICLE}
+        return replace(
+            state,
+            pos=pos,
+            vel=state.vel[idx],
+            acc=state.acc[idx],
+            dv=None if state.dv is None else state.dv[idx],
+            logw=_normalise(logw),
+            neff=neff,
+            resampled=state.resampled + 1,
+            anc=None if state.anc is None else state.anc[idx],
+            **sel,
+        )
+
+
+def _subclouds(state: ParticleState, split: int = 2) -> list[NDArray[np.int64]]:
+    """The particle indices of the cloud's ``split`` sub-clouds (sub-cloud ``k``: the descendants of draws ``k``,
+    ``k + split``, ...; module docstring, "Sub-clouds"), or of the whole cloud when its draws are unknown or
+    ``split`` < 2."""
+    if state.anc is None or split < 2:
+        return [np.arange(len(state.logw))]
+    return [np.flatnonzero(state.anc % split == k) for k in range(split)]
+
+
+def _room_for_rivals(state: ParticleState, dynamics: str) -> bool:
+    """Whether the prior the cloud was drawn from is wider (largest 1-sigma) than :data:`SPARSE_PRIOR_ELLS`
+    correlation lengths of the map error (module docstring, "Sparse draws"); True when either is unknown."""
+    if state.prior_cov is None or state.fisher is None or not np.isfinite(state.fisher[8]):
+        return True
+    ip = [0, 1] if dynamics == "ins" else [0, 3]
+    p0 = state.prior_cov[np.ix_(ip, ip)]
+    return float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (p0 + p0.T))[-1], 0.0))) > SPARSE_PRIOR_ELLS * state.fisher[8]
+
+
+def ancestral_ess(state: ParticleState) -> float:
+    """The effective number of the cloud's original draws its weight rests on: ``1 / sum_a W_a^2`` with ``W_a``
+    the weight of the particles descended (through resampling) from draw ``a``; the particle count when unknown."""
+    w = np.exp(state.logw)
+    if state.anc is None:
+        return float(len(w))
+    wa = np.bincount(state.anc, weights=w)
+    return float(1.0 / np.sum(wa * wa))
+
+
+def _balance(logw: FloatArray, groups: list[NDArray[np.int64]]) -> FloatArray:
+    """Log weights with each group's total set to ``1 / len(groups)`` (a group with no weight is left at zero):
+    the sub-clouds are estimates of the same posterior, averaged (module docstring, "Sub-clouds")."""
+    if len(groups) < 2:
+        return logw
+    out = logw.copy()
+    for grp in groups:
+        lw = logw[grp]
+        top = float(np.max(lw)) if len(grp) else -np.inf
+        if np.isfinite(top):
+            out[grp] = lw - top - np.log(np.sum(np.exp(lw - top))) - np.log(len(groups))
+    return _normalise(out)
+
+
+def subcloud_disagreement(state: ParticleState, split: int = 2) -> tuple[float, float]:
+    """The largest Mahalanobis distance^2 ``d' (P_a + P_b)^-1 d`` between the weighted means of two of the
+    cloud's sub-clouds (``d`` their difference, ``P_a``, ``P_b`` their weighted covariances, each sub-cloud's
+    weights normalised on their own) and that pair's distance ``|d|`` (m); ``(0, 0)`` without sub-clouds."""
+    groups = _subclouds(state, split)
+    if len(groups) < 2 or min(len(g) for g in groups) < 2:
+        return 0.0, 0.0
+    mom = []
+    for grp in groups:
+        lw = state.logw[grp]
+        if not np.isfinite(np.max(lw)):
+            return 0.0, 0.0
+        wg = np.exp(lw - np.max(lw))
+        wg = wg / wg.sum()
+        mu = wg @ state.pos[grp]
+        d = state.pos[grp] - mu
+        mom.append((mu, (d * wg[:, None]).T @ d))
+    worst = (0.0, 0.0)
+    for a in range(len(mom)):
+        for b in range(a + 1, len(mom)):
+            dm = mom[a][0] - mom[b][0]
+            s = mom[a][1] + mom[b][1] + np.eye(2) * 1e-6
+            worst = max(worst, (float(dm @ np.linalg.solve(s, dm)), float(np.hypot(*dm))))
+    return worst
 
 
 #: per-particle arrays of the level / map-error filter, resampled with the particles
