@@ -2,8 +2,11 @@
 
 Starts the SITL (``../shared/tools/ardupilot-sitl``, ``copter.parm``, ``SIM_DRIFT_SPEED=0``) at the flight's home, asks
 for HIGHRES_IMU at 100 Hz and records ``--seconds`` of it on the ground. One JSON line: per-axis mean and standard
-deviation of the gyro (rad/s) and accelerometer (m/s^2) samples, the white-noise densities they give (ARW rad/sqrt(s)
-and VRW m/s/sqrt(s): std x sqrt(dt)), and the accelerometer scale error on the vertical axis (|mean z| / 9.80665 - 1).
+deviation of the gyro (rad/s) and accelerometer (m/s^2) samples, the white-noise densities (ARW rad/sqrt(s) and VRW
+m/s/sqrt(s)) from the Allan deviation at 0.1-1 s (``*_allan``, :mod:`magnav_ins.ins.allan`; what the filter needs) and
+from std x sqrt(dt) (``arw_rad_sqrt_s``, ``vrw_mps_sqrt_s``: low, the samples are filtered at 20 Hz before they are
+sent), and the accelerometer scale error on the vertical axis (|mean z| / 9.80665 - 1). Use ``--seconds 60`` or more
+for the Allan figures.
 
 Usage: ``python bench/sitl_imu_noise.py [--seconds 20]``
 """
@@ -16,6 +19,7 @@ import time
 
 import numpy as np
 
+from magnav_ins.ins.allan import white_noise_density
 from magnav_ins.mavlink.link import ImuMessage
 from magnav_ins.mavlink.sitl import GroundStation, Sitl, sitl_dir
 
@@ -55,6 +59,8 @@ def main() -> None:
         "accel_std_mps2": f.std(0).tolist(),
         "arw_rad_sqrt_s": (g.std(0) * np.sqrt(dt)).tolist(),
         "vrw_mps_sqrt_s": (f.std(0) * np.sqrt(dt)).tolist(),
+        "arw_allan_rad_sqrt_s": white_noise_density(g, dt).tolist(),
+        "vrw_allan_mps_sqrt_s": white_noise_density(f, dt).tolist(),
         "accel_scale_z": float(abs(f[:, 2].mean()) / G - 1.0),
     }
     print(json.dumps(out))

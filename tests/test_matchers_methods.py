@@ -14,6 +14,7 @@ from magnav_ins.core.errors import ConfigError
 from magnav_ins.core.protocols import MatchWindow
 from magnav_ins.core.types import FieldReadings
 from magnav_ins.core.units import NT_PER_MILLIGAUSS
+from magnav_ins.maps.grid import GridMap
 from magnav_ins.maps.synthetic import hallway_map, random_field_map
 from magnav_ins.maps.track import TrackMap
 
@@ -528,3 +529,35 @@ def test_window_floor_cells_gives_a_tight_prior_a_window_of_whole_map_cells():
     assert float(err @ np.linalg.solve(wide.cov_ne, err)) < 9.0
     with pytest.raises(ConfigError, match="window_floor_cells"):
         LikelihoodMatcher(window_floor_cells=-1.0)
+
+
+def test_edge_fix_gives_the_cross_track_fix_a_smooth_along_track_map_holds():
+    """A map that varies with northing only, flown east-north-east (like the SITL square's west leg, which the map
+    fixes across the track but not along it): the likelihood is a ridge
+    along the track that reaches the edge of every widened window, so no fix; ``edge_fix`` multiplies it with the
+    prior and keeps the likelihood's own information: a fix whose cross-track (north) sigma is tight and holds the
+    truth, and whose along-track (east) position is the prior's (the INS's) with a sigma of ``edge_fix_sigma_m``."""
+    rng = np.random.default_rng(5)
+    base = random_field_map((80, 80), 100.0, 400.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    ridge = np.repeat(base.values[:, :1], base.values.shape[1], axis=1)  # a function of northing only
+    fmap = exact(
+        GridMap(base.northing, base.easting, ridge, kind=KIND_TF, frame="local", origin=ORIGIN, altitude_m=0.0)
+    )
+    s = 5.0 * np.arange(80)  # 400 m at 10 m/s, a reading every 0.5 s
+    truth = np.array([4000.0, 2000.0]) + np.column_stack([0.3 * s, s])  # east-north-east
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 1.0, s.size)
+    offset = np.array([40.0, -60.0])  # the INS is 40 m north and 60 m west of the truth
+    P = np.diag([50.0**2, 60.0**2])
+    w = make_window(fmap, 0.5 * np.arange(80.0), truth, z, 1.0, KIND_TF, offset, P, np.array([0.0, 10.0]))
+    kw = dict(method="ml", demean=True, window_floor_cells=2.0, min_fix_sigma_m=0.0, max_fix_sigma_m=150.0)
+    plain = LikelihoodMatcher(**kw).match(w, fmap)
+    assert not plain.available and plain.reason.startswith("likelihood reaches the edge")
+    fix = LikelihoodMatcher(**kw, edge_fix=True).match(w, fmap)
+    assert fix.available, fix.reason
+    at = local(fmap, fix.lat, fix.lon)
+    sd_n, sd_e = np.sqrt(np.diag(fix.cov_ne))
+    assert sd_n < 20.0 and abs(at[0] - truth[-1, 0]) < 3.0 * sd_n  # cross-track: fixed, within 3 sigma
+    assert sd_e > 5000.0 and abs(at[1] - (truth[-1, 1] + offset[1])) < 1.0  # along-track: the INS's, no information
+    with pytest.raises(ConfigError, match="edge_fix_sigma_m"):
+        LikelihoodMatcher(edge_fix_sigma_m=0.0)

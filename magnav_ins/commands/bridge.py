@@ -148,7 +148,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 #: gridded at 100 m, the INS track shape over a section), fixes wider than 150 m not issued. Chosen on the offline
 #: copter square (bench/copter_square.py), not on the SITL flight it is then measured on. A search window of at least
 #: two map cells each way (``window_floor_cells``): with the tight prior just after the GNSS is lost the window was
-#: inside one 100 m cell and every attempt was refused as "flat map" (the SITL flights, README).
+#: inside one 100 m cell and every attempt was refused as "flat map" (the SITL flights, README). ``edge_fix``: a
+#: likelihood that reaches the edge of the widest window (a smooth field along the track: the SITL square's west leg)
+#: gives the fix it holds across the track, with the prior's position and no information along it, not nothing.
 DEFAULT_MATCHER = {
     "kind": "ml",
     "demean": True,
@@ -157,6 +159,7 @@ DEFAULT_MATCHER = {
     "max_fix_sigma_m": 150.0,
     "min_variability": 0.3,
     "window_floor_cells": 2.0,
+    "edge_fix": True,
 }
 DEFAULT_MATCHER_TEXT = ", ".join(f"{k}={v}" for k, v in DEFAULT_MATCHER.items())
 

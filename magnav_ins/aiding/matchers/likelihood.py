@@ -61,7 +61,9 @@ map's own field statistics (:func:`~.map_error.off_map_loglik`); when those node
 "No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
 ``min_variability`` times the sensor sigma), an ambiguous likelihood (its 99.9 % region falls into several parts and
 those other than the best one's hold more than ``ambiguity_mass``; the reason gives the mass and the distance), a
-likelihood that still reaches the edge of the widened search window, a likelihood spread wider than
+likelihood that still reaches the edge of the widened search window (with ``edge_fix``: only when even the
+likelihood times the prior does, or it holds no information; else the fix in the directions it does hold,
+:meth:`LikelihoodMatcher.prior_fix`), a likelihood spread wider than
 ``max_fix_sigma_m``, an MLR ratio or ABL peak below threshold.
 """
 
@@ -188,7 +190,9 @@ class LikelihoodMatcher:
     alone gave fix sigmas under 1 m for fixes 200-400 m off; 0 = none); ``max_nodes`` cap on scanned nodes;
     ``map_correlation_m`` overrides the map's error correlation length (m); ``honest`` applies the temperature;
     ``ambiguity_mass`` (0.05; 1 = off); ``count_overlap``; ``track_error`` (INS drift in the section covariance);
-    ``window_growth`` (widenings of the search window); ``off_map`` "impossible" | "unknown" and
+    ``window_growth`` (widenings of the search window); ``edge_fix`` and ``edge_fix_sigma_m`` (m): when the
+    likelihood still reaches the edge of the widest window, the fix it holds with the prior (:meth:`prior_fix`)
+    rather than none; ``off_map`` "impossible" | "unknown" and
     ``max_off_map_mass``; ``level_sigma`` the level offset's prior 1-sigma (None = the map's, 0 = none) (module
     docstring). The module docstring says what the covariance contains.
 
@@ -222,6 +226,8 @@ class LikelihoodMatcher:
     count_overlap: bool = True
     track_error: bool = True
     window_growth: int = 2
+    edge_fix: bool = False
+    edge_fix_sigma_m: float = 10_000.0
     off_map: str = "impossible"
     max_off_map_mass: float = 0.5
     level_sigma: float | None = None
@@ -251,6 +257,8 @@ class LikelihoodMatcher:
                 "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m, "
                 "window_floor_cells >= 0"
             )
+        if not self.edge_fix_sigma_m > 0:
+            raise ConfigError(f"likelihood matcher 'edge_fix_sigma_m': expected > 0, got {self.edge_fix_sigma_m!r}")
         if self.level_sigma is not None and not self.level_sigma >= 0:
             raise ConfigError(f"likelihood matcher 'level_sigma': expected >= 0 or None, got {self.level_sigma!r}")
         if self.off_map not in ("impossible", "unknown"):
@@ -470,6 +478,11 @@ class LikelihoodMatcher:
                 if not fix.reason.startswith(EDGE_REASON):
                     return fix
                 grow *= 2.0
+            if self.edge_fix:
+                cov = np.asarray(window.cov_ne, dtype=float)
+                partial = self.prior_fix(surf, t, cov[-1] if cov.ndim == 3 else cov)
+                if partial is not None:
+                    return partial
             return fix
         except (ValueError, FloatingPointError) as exc:  # data problems never escape as exceptions
             return Fix.no_fix(t, f"map lookup failed: {exc}", self.name)
@@ -589,6 +602,66 @@ class LikelihoodMatcher:
         self._issued(surf)
         lat, lon = surf.frame.to_latlon(n_fix, e_fix)
         return Fix(t, float(lat), float(lon), cov, True, "", score, self.name)
+
+    def prior_fix(self, surf: Surface, t: float, prior_cov: FloatArray) -> Fix | None:
+        """The fix a likelihood that reaches the edge of the widest search window still holds (``edge_fix``), or
+        None: the tempered likelihood times the prior ``N(0, prior_cov)`` (north/east m^2, centred on the INS
+        position of the last reading, the frame's origin; the window spans ``window_sigma * 2**window_growth``
+        prior sigmas, so the product is inside it) has moments ``mu, C``; the likelihood's own information is
+        ``L = C^-1 - prior_cov^-1`` and the fix is ``L^-1 C^-1 mu`` with covariance ``L^-1`` in the directions where
+        ``L`` holds more than ``1 / edge_fix_sigma_m^2``. In the others (along a track over a smooth map) the fix
+        says nothing: it sits at the prior's mean (no innovation) with a 1-sigma of ``edge_fix_sigma_m``. So a
+        section that fixes the cross-track position but not the along-track one gives a cross-track fix rather than
+        nothing. None when the product is still at the window's edge, ambiguous, or holds no information."""
+        if surf.shape is None or not self.search_window:
+            return None
+        P = np.asarray(prior_cov, dtype=float).reshape(2, 2)
+        if not np.all(np.isfinite(P)) or np.linalg.det(P) <= 0.0:
+            return None
+        logl = surf.logl
+        k = surf.k_max if surf.k_max >= 0 else int(np.argmax(logl))
+        if not np.isfinite(logl[k]):
+            return None
+        ki, kj = divmod(k, surf.shape[1])
+        temp, topup = (
+            self.honesty(surf, float(surf.n[ki]), float(surf.e[kj])) if self.honest else (1.0, np.zeros((2, 2)))
+        )
+        overlap = self._overlap_factor(surf)
+        temp, topup = temp * overlap, topup * overlap
+        gn, ge = np.meshgrid(surf.n, surf.e, indexing="ij")
+        Pi = np.linalg.inv(P)
+        lp = (logl.reshape(surf.shape) - float(logl[k])) / temp
+        lp = lp - 0.5 * (Pi[0, 0] * gn**2 + 2.0 * Pi[0, 1] * gn * ge + Pi[1, 1] * ge**2)
+        lp = np.where(np.isfinite(lp), lp, -np.inf)
+        pi_, pj_ = divmod(int(np.argmax(lp)), surf.shape[1])
+        lp = lp - float(lp[pi_, pj_])
+        if _reaches_edge(lp, pi_, pj_):
+            return None
+        if self.ambiguity_mass < 1.0 and _ambiguity(lp, surf.n, surf.e, pi_, pj_)[0] > self.ambiguity_mass:
+            return None
+        w = np.exp(lp)
+        w /= w.sum()
+        mu = np.array([float(np.sum(w * gn)), float(np.sum(w * ge))])
+        dn, de = gn - mu[0], ge - mu[1]
+        C = np.array([[np.sum(w * dn * dn), np.sum(w * dn * de)], [np.sum(w * dn * de), np.sum(w * de * de)]])
+        C = C + np.eye(2) * surf.step**2 / 12.0
+        Ci = np.linalg.inv(C)
+        L = Ci - Pi
+        lam, V = np.linalg.eigh(0.5 * (L + L.T))
+        lam_min = 1.0 / self.edge_fix_sigma_m**2
+        if lam[-1] <= lam_min:
+            return None
+        y = V.T @ (Ci @ mu)
+        strong = lam > lam_min
+        z = V @ np.where(strong, y / np.where(strong, lam, 1.0), 0.0)
+        R = V @ np.diag(np.where(strong, 1.0 / np.where(strong, lam, 1.0), self.edge_fix_sigma_m**2)) @ V.T
+        R = R + topup + np.eye(2) * (surf.step**2 / 12.0 + self.min_fix_sigma_m**2)
+        max_sig = self.max_fix_sigma_m if self.max_fix_sigma_m is not None else 0.25 * min(surf.half) / surf.grow
+        if float(np.sqrt(np.linalg.eigvalsh(R)[0])) > max_sig:
+            return None
+        self._issued(surf)
+        lat, lon = surf.frame.to_latlon(float(z[0]), float(z[1]))
+        return Fix(t, float(lat), float(lon), R, True, "", float("nan"), self.name)
 
     # ------------------------------------------------------------------ honesty
     def temperature(self, surf: Surface, n_fix: float, e_fix: float) -> float:
