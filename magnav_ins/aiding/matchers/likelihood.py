@@ -522,9 +522,7 @@ class LikelihoodMatcher:
             n_fix, e_fix = float(surf.n[ki]), float(surf.e[kj])
         else:
             n_fix, e_fix = float(surf.n[k]), float(surf.e[k])
-        temp, topup = self.honesty(surf, n_fix, e_fix) if (grid and self.honest) else (1.0, np.zeros((2, 2)))
-        overlap = self._overlap_factor(surf)
-        temp, topup = temp * overlap, topup * overlap
+        temp, topup = self._tempering(surf, n_fix, e_fix, grid)
         logl = (logl - float(logl[k])) / temp  # tempered: the peak is 0
         lmax = 0.0
         if grid:
@@ -623,11 +621,7 @@ class LikelihoodMatcher:
         if not np.isfinite(logl[k]):
             return None
         ki, kj = divmod(k, surf.shape[1])
-        temp, topup = (
-            self.honesty(surf, float(surf.n[ki]), float(surf.e[kj])) if self.honest else (1.0, np.zeros((2, 2)))
-        )
-        overlap = self._overlap_factor(surf)
-        temp, topup = temp * overlap, topup * overlap
+        temp, topup = self._tempering(surf, float(surf.n[ki]), float(surf.e[kj]), True)
         gn, ge = np.meshgrid(surf.n, surf.e, indexing="ij")
         Pi = np.linalg.inv(P)
         lp = (logl.reshape(surf.shape) - float(logl[k])) / temp
@@ -642,9 +636,7 @@ class LikelihoodMatcher:
         w = np.exp(lp)
         w /= w.sum()
         mu = np.array([float(np.sum(w * gn)), float(np.sum(w * ge))])
-        dn, de = gn - mu[0], ge - mu[1]
-        C = np.array([[np.sum(w * dn * dn), np.sum(w * dn * de)], [np.sum(w * dn * de), np.sum(w * de * de)]])
-        C = C + np.eye(2) * surf.step**2 / 12.0
+        C = moments_about(w, gn, ge, mu[0], mu[1]) + np.eye(2) * surf.step**2 / 12.0
         Ci = np.linalg.inv(C)
         L = Ci - Pi
         lam, V = np.linalg.eigh(0.5 * (L + L.T))
@@ -711,6 +703,14 @@ class LikelihoodMatcher:
             chi2, dof = whitened_misfit(resid, sigma, tr)
             phi = misfit_factor(chi2, dof)
         return float(kappa * phi), topup * phi
+
+    def _tempering(self, surf: Surface, n_fix: float, e_fix: float, grid: bool) -> tuple[float, FloatArray]:
+        """The temperature (>= 1) the scan's log-likelihood is divided by and the covariance top-up (m^2) for a fix
+        at ``(n_fix, e_fix)``: :meth:`honesty` on a grid scan (1 and none otherwise or without ``honest``), both
+        scaled by :meth:`_overlap_factor`."""
+        temp, topup = self.honesty(surf, n_fix, e_fix) if (grid and self.honest) else (1.0, np.zeros((2, 2)))
+        overlap = self._overlap_factor(surf)
+        return temp * overlap, topup * overlap
 
     def _overlap_factor(self, surf: Surface) -> float:
         """``K / (readings newer than the last issued fix)`` when this window shares readings with the window of
