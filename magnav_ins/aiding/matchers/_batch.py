@@ -324,3 +324,20 @@ def drift_misfit_variance(fmap: FieldMap, x_ins: FloatArray, rel_drift: FloatArr
     rho = np.where(den > 0, np.clip(num / np.where(den > 0, den, 1.0), 0.0, 1.0), (h == 0).astype(float))
     b = np.clip(np.sum(rho, axis=1), 1.0, float(len(x)))
     return D * b
+
+
+def loewner_max(A: FloatArray, B: FloatArray, big: float = np.inf, information: bool = False) -> FloatArray:
+    """A covariance no smaller than ``A`` and ``B`` (2, 2) in the Loewner order: in the basis that whitens ``A``,
+    each eigenvalue of ``B`` raised to at least 1 (``A`` where it is larger, ``B`` where that is). ``information``:
+    ``B`` is an information matrix (its inverse the covariance; it may be singular). Variances capped at ``big``."""
+    ev, V = np.linalg.eigh(0.5 * (A + A.T))
+    L = V * np.sqrt(np.maximum(ev, 1e-12 * max(float(ev[-1]), 1e-300)))  # A = L L'
+    if information:
+        mu, W = np.linalg.eigh(L.T @ B @ L)
+        lam = 1.0 / np.maximum(np.minimum(mu, 1.0), 1e-300)
+    else:
+        Li = np.linalg.inv(L)
+        lam, W = np.linalg.eigh(Li @ B @ Li.T)
+        lam = np.maximum(lam, 1.0)
+    out = L @ ((W * np.minimum(lam, big / max(float(ev[0]), 1e-300))) @ W.T) @ L.T
+    return 0.5 * (out + out.T)

@@ -173,7 +173,7 @@ from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import FieldReadings, Fix, NavEstimate
 from ..gating import chi2_threshold
-from ._batch import RIVAL_PEAK_RATIO, rival_moment
+from ._batch import RIVAL_PEAK_RATIO, loewner_max, rival_moment
 from ._local import LocalFrame, feature_variability, map_components, sample_map
 from .map_error import INTEGRAL_SCALE, MapErrorModel, markov_coefficient, misfit_factor, resolve_map_error
 
@@ -314,19 +314,13 @@ def _moment_match(x: FloatArray, mean: FloatArray, cov: FloatArray) -> FloatArra
 
 
 def _loewner_max(a: FloatArray, b: FloatArray) -> FloatArray:
-    """The smallest covariance (2, 2) at least as large as both ``a`` and ``b`` in every direction found by whitening
-    ``a`` (each eigenvalue of ``b`` in ``a``'s whitened frame raised to 1); ``a`` or ``b`` when the other is zero."""
-    ta, tb = float(np.trace(a)), float(np.trace(b))
-    if tb <= 0:
+    """:func:`._batch.loewner_max` of two covariances (2, 2), either of which may be zero (no rivals, no far
+    mass): then the other."""
+    if float(np.trace(b)) <= 0:
         return a
-    if ta <= 0:
+    if float(np.trace(a)) <= 0:
         return b
-    a = 0.5 * (a + a.T) + np.eye(2) * 1e-9 * ta
-    lc = np.linalg.cholesky(a)
-    li = np.linalg.inv(lc)
-    w, v = np.linalg.eigh(li @ (0.5 * (b + b.T)) @ li.T)
-    out = lc @ (v * np.maximum(w, 1.0)) @ v.T @ lc.T
-    return 0.5 * (out + out.T)
+    return loewner_max(a, b)
 
 
 def _psd_part(a: FloatArray) -> FloatArray:

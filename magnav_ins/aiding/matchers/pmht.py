@@ -134,7 +134,7 @@ from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
 from ...core.types import Fix
 from ...maps.variability import feature_variability_track
-from ._batch import RIVAL_PEAK_RATIO, adds_information, information_refusal, reading_variance
+from ._batch import RIVAL_PEAK_RATIO, adds_information, information_refusal, loewner_max, reading_variance
 from ._local import WorkFrame, make_frame, map_components, sigma_window, spacing_of, window_axes
 from .likelihood import ins_drift_rate
 from .map_error import (
@@ -379,23 +379,6 @@ def _em(
         if change <= tol:
             break
     return X, Ps, zbar, Rbar, it_used
-
-
-def _loewner_max(A: FloatArray, B: FloatArray, big: float, information: bool = False) -> FloatArray:
-    """A covariance no smaller than ``A`` and ``B`` (2, 2) in the Loewner order: in the basis that whitens ``A``,
-    each eigenvalue of ``B`` raised to at least 1 (``A`` where it is larger, ``B`` where that is). ``information``:
-    ``B`` is an information matrix (its inverse the covariance; it may be singular). Variances capped at ``big``."""
-    ev, V = np.linalg.eigh(0.5 * (A + A.T))
-    L = V * np.sqrt(np.maximum(ev, 1e-12 * max(float(ev[-1]), 1e-300)))  # A = L L'
-    if information:
-        mu, W = np.linalg.eigh(L.T @ B @ L)
-        lam = 1.0 / np.maximum(np.minimum(mu, 1.0), 1e-300)
-    else:
-        Li = np.linalg.inv(L)
-        lam, W = np.linalg.eigh(Li @ B @ Li.T)
-        lam = np.maximum(lam, 1.0)
-    out = L @ ((W * np.minimum(lam, big / max(float(ev[0]), 1e-300))) @ W.T) @ L.T
-    return 0.5 * (out + out.T)
 
 
 # ---------------------------------------------------------------------------------------------- matcher
@@ -997,16 +980,16 @@ class PMHTMatcher:
             cov = cov * max(1.0, res.nis / 2.0)
         big = (10.0 * float(np.max(res.half[k]))) ** 2
         if self.crlb_floor:  # never claim more than the CRLB: the Loewner maximum of cov and J^-1 (J may be singular)
-            cov = _loewner_max(cov, res.fisher, big, information=True)
+            cov = loewner_max(cov, res.fisher, big, information=True)
         amb = self._ambiguity_cov(res, k) if self.ambiguity_floor else None
         if amb is not None and amb[1] <= self.ambiguity_mass:
             # the batch likelihood is ambiguous within the gate (mass away from the EM's mode): cover its spread
             dep = self._deprior_estimate(res, k, big) if (self.ambiguity_deprior and self.deprior_location) else None
             if dep is not None:  # the readings' own estimate, not the EM's mode (module docstring)
                 xk, cov_r = dep
-                cov = _loewner_max(cov_r, res.fisher, big, information=True) if self.crlb_floor else cov_r
+                cov = loewner_max(cov_r, res.fisher, big, information=True) if self.crlb_floor else cov_r
             else:
-                cov = _loewner_max(cov, amb[0], big)
+                cov = loewner_max(cov, amb[0], big)
         ev, V = np.linalg.eigh(0.5 * (cov + cov.T))
         ev = np.minimum(ev, big)
         cov = (V * ev) @ V.T
