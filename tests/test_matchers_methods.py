@@ -561,3 +561,32 @@ def test_edge_fix_gives_the_cross_track_fix_a_smooth_along_track_map_holds():
     assert sd_e > 5000.0 and abs(at[1] - (truth[-1, 1] + offset[1])) < 1.0  # along-track: the INS's, no information
     with pytest.raises(ConfigError, match="edge_fix_sigma_m"):
         LikelihoodMatcher(edge_fix_sigma_m=0.0)
+
+
+def test_ml_refuses_a_likelihood_cut_off_by_the_maps_edge():
+    """A section flown north up to 20 m short of where the map's data end (its northern rows hold no values, as
+    the Osborne tie lines begin at the map's edge): hypotheses north of the truth put readings off the map and are
+    impossible, so the likelihood's peak region ends at the data's edge; its moments would be truncated and its
+    peak pushed inwards. ML gives "map edge" (no fix), with and without ``edge_fix``; the same section 2 km inside
+    the map is fixed, within 3 sigma."""
+    rng = np.random.default_rng(11)
+    base = random_field_map((80, 80), 100.0, 1500.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    vals = np.array(base.values, dtype=float)
+    gap = base.northing >= 6000.0  # no data from 6 km north on: bilinear values end at 5.9 km
+    vals[gap, :] = np.nan
+    fmap = exact(base.with_values(vals))
+    s = 10.0 * np.arange(60)
+    P = np.diag([40.0**2, 40.0**2])
+    for north_end, expect_fix in ((5880.0, False), (4000.0, True)):
+        truth = np.column_stack([north_end - s[::-1], np.full(s.size, 3000.0)])
+        lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+        z = fmap.value(lat, lon) + rng.normal(0, 5.0, s.size)  # a peak region some 60 m wide
+        w = make_window(fmap, np.arange(60.0), truth, z, 5.0, KIND_TF, np.array([-30.0, 20.0]), P, np.array([10.0, 0]))
+        for edge_fix in (False, True):
+            fix = LikelihoodMatcher(method="ml", edge_fix=edge_fix).match(w, fmap)
+            if expect_fix:
+                assert fix.available, fix.reason
+                err = local(fmap, fix.lat, fix.lon) - truth[-1]
+                assert float(err @ np.linalg.solve(fix.cov_ne, err)) < 11.8  # 3 sigma (2 dof)
+            else:
+                assert not fix.available and fix.reason.startswith("map edge"), fix.reason
