@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from matcher_scenarios import KIND_G, KIND_TF, KIND_V, ORIGIN, exact, latlon, local, make_window, nav_estimate
@@ -551,7 +553,7 @@ def test_edge_fix_gives_the_cross_track_fix_a_smooth_along_track_map_holds():
     P = np.diag([50.0**2, 60.0**2])
     w = make_window(fmap, 0.5 * np.arange(80.0), truth, z, 1.0, KIND_TF, offset, P, np.array([0.0, 10.0]))
     kw = dict(method="ml", demean=True, window_floor_cells=2.0, min_fix_sigma_m=0.0, max_fix_sigma_m=150.0)
-    plain = LikelihoodMatcher(**kw).match(w, fmap)
+    plain = LikelihoodMatcher(**kw, edge_fix=False).match(w, fmap)
     assert not plain.available and plain.reason.startswith("likelihood reaches the edge")
     fix = LikelihoodMatcher(**kw, edge_fix=True).match(w, fmap)
     assert fix.available, fix.reason
@@ -559,6 +561,7 @@ def test_edge_fix_gives_the_cross_track_fix_a_smooth_along_track_map_holds():
     sd_n, sd_e = np.sqrt(np.diag(fix.cov_ne))
     assert sd_n < 20.0 and abs(at[0] - truth[-1, 0]) < 3.0 * sd_n  # cross-track: fixed, within 3 sigma
     assert sd_e > 5000.0 and abs(at[1] - (truth[-1, 1] + offset[1])) < 1.0  # along-track: the INS's, no information
+    assert LikelihoodMatcher().edge_fix  # on by default (the suite's straight tie lines: a ridge along the track)
     with pytest.raises(ConfigError, match="edge_fix_sigma_m"):
         LikelihoodMatcher(edge_fix_sigma_m=0.0)
 
@@ -590,3 +593,22 @@ def test_ml_refuses_a_likelihood_cut_off_by_the_maps_edge():
                 assert float(err @ np.linalg.solve(fix.cov_ne, err)) < 11.8  # 3 sigma (2 dof)
             else:
                 assert not fix.available and fix.reason.startswith("map edge"), fix.reason
+
+
+def test_ml_issues_a_fix_wider_than_the_prior_while_it_adds_information():
+    """The issuing rule (issue 16's, as the batch matchers'): a fix 1.5 prior sigmas wide still shrinks the INS
+    covariance (by 31 %) and is issued; one 10 prior sigmas wide adds 1 % and is "likelihood too spread"; an
+    explicit ``max_fix_sigma_m`` keeps its old meaning (the better direction's 1-sigma at most that)."""
+    rng = np.random.default_rng(3)
+    fmap = exact(random_field_map((60, 60), 100.0, 800.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN))
+    truth = np.column_stack([2000.0 + 10.0 * np.arange(30), np.full(30, 3000.0)])
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    P = np.diag([40.0**2, 40.0**2])
+    w = make_window(fmap, np.arange(30.0), truth, fmap.value(lat, lon), 1.0, KIND_TF, np.zeros(2), P, np.zeros(2))
+    m = LikelihoodMatcher(method="ml")
+    surf = replace(m.surface(w, fmap), prior_cov=P)
+    assert m._too_spread(surf, (1.5 * 40.0) ** 2 * np.eye(2), 0.0, 1.0, True) is None
+    wide = m._too_spread(surf, (10.0 * 40.0) ** 2 * np.eye(2), 0.0, 1.0, True)
+    assert wide is not None and wide.reason.startswith("likelihood too spread: the fix adds no information")
+    capped = LikelihoodMatcher(method="ml", max_fix_sigma_m=40.0)._too_spread(surf, 60.0**2 * np.eye(2), 0.0, 1.0, True)
+    assert capped is not None and "above 40 m" in capped.reason
