@@ -612,3 +612,34 @@ def test_ml_issues_a_fix_wider_than_the_prior_while_it_adds_information():
     assert wide is not None and wide.reason.startswith("likelihood too spread: the fix adds no information")
     capped = LikelihoodMatcher(method="ml", max_fix_sigma_m=40.0)._too_spread(surf, 60.0**2 * np.eye(2), 0.0, 1.0, True)
     assert capped is not None and "above 40 m" in capped.reason
+
+
+def test_ml_edge_fix_keeps_a_map_edge_likelihood_when_the_prior_stays_off_the_edge():
+    """A map that varies with northing only and has no data east of 6 km, flown east-north-east towards that edge (a
+    straight line that ends at the map's edge): the likelihood is a ridge along east that runs into the data's edge,
+    so without ``edge_fix`` "map edge"; with it (the default) the likelihood times the prior (40 m, 1.5 km from the
+    edge: it stays off it) gives the cross-track fix, holding the truth within 3 sigma, and no information along."""
+    rng = np.random.default_rng(5)
+    base = random_field_map((80, 80), 100.0, 400.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    ridge = np.repeat(base.values[:, :1], base.values.shape[1], axis=1)  # a function of northing only
+    ridge[:, base.easting >= 6000.0] = np.nan
+    fmap = exact(
+        GridMap(base.northing, base.easting, ridge, kind=KIND_TF, frame="local", origin=ORIGIN, altitude_m=0.0)
+    )
+    s = 5.0 * np.arange(80)
+    truth = np.array([4000.0, 4100.0]) + np.column_stack([0.3 * s, s])  # east-north-east, ends 1.5 km from the edge
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 1.0, s.size)
+    P = np.diag([40.0**2, 40.0**2])
+    w = make_window(
+        fmap, 0.5 * np.arange(80.0), truth, z, 1.0, KIND_TF, np.array([30.0, -20.0]), P, np.array([0, 10.0])
+    )
+    kw = dict(method="ml", demean=True, window_floor_cells=2.0, window_growth=5)
+    plain = LikelihoodMatcher(**kw, edge_fix=False).match(w, fmap)
+    assert not plain.available and plain.reason.startswith("map edge"), plain.reason
+    fix = LikelihoodMatcher(**kw).match(w, fmap)
+    assert fix.available, fix.reason
+    at = local(fmap, fix.lat, fix.lon)
+    sd_n, sd_e = np.sqrt(np.diag(fix.cov_ne))
+    assert sd_n < 20.0 and abs(at[0] - truth[-1, 0]) < 3.0 * sd_n  # cross-track: fixed
+    assert sd_e > 5000.0  # along-track: nothing
