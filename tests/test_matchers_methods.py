@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from matcher_scenarios import KIND_G, KIND_TF, KIND_V, ORIGIN, exact, latlon, local, make_window, nav_estimate
@@ -551,7 +553,7 @@ def test_edge_fix_gives_the_cross_track_fix_a_smooth_along_track_map_holds():
     P = np.diag([50.0**2, 60.0**2])
     w = make_window(fmap, 0.5 * np.arange(80.0), truth, z, 1.0, KIND_TF, offset, P, np.array([0.0, 10.0]))
     kw = dict(method="ml", demean=True, window_floor_cells=2.0, min_fix_sigma_m=0.0, max_fix_sigma_m=150.0)
-    plain = LikelihoodMatcher(**kw).match(w, fmap)
+    plain = LikelihoodMatcher(**kw, edge_fix=False).match(w, fmap)
     assert not plain.available and plain.reason.startswith("likelihood reaches the edge")
     fix = LikelihoodMatcher(**kw, edge_fix=True).match(w, fmap)
     assert fix.available, fix.reason
@@ -559,5 +561,85 @@ def test_edge_fix_gives_the_cross_track_fix_a_smooth_along_track_map_holds():
     sd_n, sd_e = np.sqrt(np.diag(fix.cov_ne))
     assert sd_n < 20.0 and abs(at[0] - truth[-1, 0]) < 3.0 * sd_n  # cross-track: fixed, within 3 sigma
     assert sd_e > 5000.0 and abs(at[1] - (truth[-1, 1] + offset[1])) < 1.0  # along-track: the INS's, no information
+    assert LikelihoodMatcher().edge_fix  # on by default (the suite's straight tie lines: a ridge along the track)
     with pytest.raises(ConfigError, match="edge_fix_sigma_m"):
         LikelihoodMatcher(edge_fix_sigma_m=0.0)
+
+
+def test_ml_refuses_a_likelihood_cut_off_by_the_maps_edge():
+    """A section flown north up to 20 m short of where the map's data end (its northern rows hold no values, as
+    the Osborne tie lines begin at the map's edge): hypotheses north of the truth put readings off the map and are
+    impossible, so the likelihood's peak region ends at the data's edge; its moments would be truncated and its
+    peak pushed inwards. ML gives "map edge" (no fix), with and without ``edge_fix``; the same section 2 km inside
+    the map is fixed, within 3 sigma."""
+    rng = np.random.default_rng(11)
+    base = random_field_map((80, 80), 100.0, 1500.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    vals = np.array(base.values, dtype=float)
+    gap = base.northing >= 6000.0  # no data from 6 km north on: bilinear values end at 5.9 km
+    vals[gap, :] = np.nan
+    fmap = exact(base.with_values(vals))
+    s = 10.0 * np.arange(60)
+    P = np.diag([40.0**2, 40.0**2])
+    for north_end, expect_fix in ((5880.0, False), (4000.0, True)):
+        truth = np.column_stack([north_end - s[::-1], np.full(s.size, 3000.0)])
+        lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+        z = fmap.value(lat, lon) + rng.normal(0, 5.0, s.size)  # a peak region some 60 m wide
+        w = make_window(fmap, np.arange(60.0), truth, z, 5.0, KIND_TF, np.array([-30.0, 20.0]), P, np.array([10.0, 0]))
+        for edge_fix in (False, True):
+            fix = LikelihoodMatcher(method="ml", edge_fix=edge_fix).match(w, fmap)
+            if expect_fix:
+                assert fix.available, fix.reason
+                err = local(fmap, fix.lat, fix.lon) - truth[-1]
+                assert float(err @ np.linalg.solve(fix.cov_ne, err)) < 11.8  # 3 sigma (2 dof)
+            else:
+                assert not fix.available and fix.reason.startswith("map edge"), fix.reason
+
+
+def test_ml_issues_a_fix_wider_than_the_prior_while_it_adds_information():
+    """The issuing rule (issue 16's, as the batch matchers'): a fix 1.5 prior sigmas wide still shrinks the INS
+    covariance (by 31 %) and is issued; one 10 prior sigmas wide adds 1 % and is "likelihood too spread"; an
+    explicit ``max_fix_sigma_m`` keeps its old meaning (the better direction's 1-sigma at most that)."""
+    rng = np.random.default_rng(3)
+    fmap = exact(random_field_map((60, 60), 100.0, 800.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN))
+    truth = np.column_stack([2000.0 + 10.0 * np.arange(30), np.full(30, 3000.0)])
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    P = np.diag([40.0**2, 40.0**2])
+    w = make_window(fmap, np.arange(30.0), truth, fmap.value(lat, lon), 1.0, KIND_TF, np.zeros(2), P, np.zeros(2))
+    m = LikelihoodMatcher(method="ml")
+    surf = replace(m.surface(w, fmap), prior_cov=P)
+    assert m._too_spread(surf, (1.5 * 40.0) ** 2 * np.eye(2), 0.0, 1.0, True) is None
+    wide = m._too_spread(surf, (10.0 * 40.0) ** 2 * np.eye(2), 0.0, 1.0, True)
+    assert wide is not None and wide.reason.startswith("likelihood too spread: the fix adds no information")
+    capped = LikelihoodMatcher(method="ml", max_fix_sigma_m=40.0)._too_spread(surf, 60.0**2 * np.eye(2), 0.0, 1.0, True)
+    assert capped is not None and "above 40 m" in capped.reason
+
+
+def test_ml_edge_fix_keeps_a_map_edge_likelihood_when_the_prior_stays_off_the_edge():
+    """A map that varies with northing only and has no data east of 6 km, flown east-north-east towards that edge (a
+    straight line that ends at the map's edge): the likelihood is a ridge along east that runs into the data's edge,
+    so without ``edge_fix`` "map edge"; with it (the default) the likelihood times the prior (40 m, 1.5 km from the
+    edge: it stays off it) gives the cross-track fix, holding the truth within 3 sigma, and no information along."""
+    rng = np.random.default_rng(5)
+    base = random_field_map((80, 80), 100.0, 400.0, 100.0, rng, kind=KIND_TF, origin=ORIGIN)
+    ridge = np.repeat(base.values[:, :1], base.values.shape[1], axis=1)  # a function of northing only
+    ridge[:, base.easting >= 6000.0] = np.nan
+    fmap = exact(
+        GridMap(base.northing, base.easting, ridge, kind=KIND_TF, frame="local", origin=ORIGIN, altitude_m=0.0)
+    )
+    s = 5.0 * np.arange(80)
+    truth = np.array([4000.0, 4100.0]) + np.column_stack([0.3 * s, s])  # east-north-east, ends 1.5 km from the edge
+    lat, lon = latlon(fmap, truth[:, 0], truth[:, 1])
+    z = fmap.value(lat, lon) + rng.normal(0, 1.0, s.size)
+    P = np.diag([40.0**2, 40.0**2])
+    w = make_window(
+        fmap, 0.5 * np.arange(80.0), truth, z, 1.0, KIND_TF, np.array([30.0, -20.0]), P, np.array([0, 10.0])
+    )
+    kw = dict(method="ml", demean=True, window_floor_cells=2.0, window_growth=5)
+    plain = LikelihoodMatcher(**kw, edge_fix=False).match(w, fmap)
+    assert not plain.available and plain.reason.startswith("map edge"), plain.reason
+    fix = LikelihoodMatcher(**kw).match(w, fmap)
+    assert fix.available, fix.reason
+    at = local(fmap, fix.lat, fix.lon)
+    sd_n, sd_e = np.sqrt(np.diag(fix.cov_ne))
+    assert sd_n < 20.0 and abs(at[0] - truth[-1, 0]) < 3.0 * sd_n  # cross-track: fixed
+    assert sd_e > 5000.0  # along-track: nothing

@@ -61,7 +61,9 @@ map's own field statistics (:func:`~.map_error.off_map_loglik`); when those node
 "No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
 ``min_variability`` times the sensor sigma), an ambiguous likelihood (its 99.9 % region falls into several parts and
 those other than the best one's hold more than ``ambiguity_mass``; the reason gives the mass and the distance), a
-likelihood that still reaches the edge of the widened search window (with ``edge_fix``: only when even the
+likelihood whose peak region reaches scanned positions without map values ("map edge": cut off by the map's edge,
+its peak pushed inwards and its spread too small; a wider window cannot help; with ``edge_fix`` the likelihood times
+the prior is used when that stays off the map's edge), a likelihood that still reaches the edge of the widened search window (with ``edge_fix``: only when even the
 likelihood times the prior does, or it holds no information; else the fix in the directions it does hold,
 :meth:`LikelihoodMatcher.prior_fix`), a likelihood spread wider than
 ``max_fix_sigma_m``, an MLR ratio or ABL peak below threshold.
@@ -137,10 +139,16 @@ class Surface:
     section: Section | None = None
     grow: float = 1.0
     off_loglik: float = float("nan")
+    prior_cov: FloatArray | None = None  # (2, 2) m^2, the INS covariance at the last reading (the issuing rule)
 
 
 #: the "no fix" reason when the likelihood's peak region reaches the border of the scanned window
 EDGE_REASON = "likelihood reaches the edge of the search window"
+#: the "no fix" reason when the likelihood's peak region reaches scanned nodes without map values (the map's edge)
+MAP_EDGE_REASON = (
+    "map edge: the likelihood's peak region reaches positions without map values, so it is cut off there (its "
+    "peak and spread are not the readings')"
+)
 
 
 @dataclass(frozen=True)
@@ -190,7 +198,7 @@ class LikelihoodMatcher:
     alone gave fix sigmas under 1 m for fixes 200-400 m off; 0 = none); ``max_nodes`` cap on scanned nodes;
     ``map_correlation_m`` overrides the map's error correlation length (m); ``honest`` applies the temperature;
     ``ambiguity_mass`` (0.05; 1 = off); ``count_overlap``; ``track_error`` (INS drift in the section covariance);
-    ``window_growth`` (widenings of the search window); ``edge_fix`` and ``edge_fix_sigma_m`` (m): when the
+    ``window_growth`` (widenings of the search window); ``edge_fix`` (on by default since 2026-12) and ``edge_fix_sigma_m`` (m): when the
     likelihood still reaches the edge of the widest window, the fix it holds with the prior (:meth:`prior_fix`)
     rather than none; ``off_map`` "impossible" | "unknown" and
     ``max_off_map_mass``; ``level_sigma`` the level offset's prior 1-sigma (None = the map's, 0 = none) (module
@@ -226,7 +234,7 @@ class LikelihoodMatcher:
     count_overlap: bool = True
     track_error: bool = True
     window_growth: int = 2
-    edge_fix: bool = False
+    edge_fix: bool = True
     edge_fix_sigma_m: float = 10_000.0
     off_map: str = "impossible"
     max_off_map_mass: float = 0.5
@@ -464,23 +472,26 @@ class LikelihoodMatcher:
     def match(self, window: MatchWindow, fmap: FieldMap) -> Fix:
         """A :class:`Fix` at the time of the window's last reading, or a "no fix" with the reason."""
         t = float(window.readings.t[-1]) if len(window.readings) else float("nan")
+        cov_w = np.asarray(window.cov_ne, dtype=float)
+        prior_cov = cov_w[-1] if cov_w.ndim == 3 else cov_w
         try:
             grow = 1.0
             for _ in range(self.window_growth + 1):  # widen the window while the likelihood reaches its edge
                 surf = self.surface(window, fmap, grow)
                 if isinstance(surf, str):
                     return Fix.no_fix(t, surf, self.name)
-                surf = replace(surf, grow=grow)
+                surf = replace(surf, grow=grow, prior_cov=prior_cov)
                 if self.off_map == "unknown" and surf.section is not None:
                     off = off_map_loglik(surf.section.z, fmap, surf.section.s2_base)
                     surf = replace(surf, off_loglik=off)
                 fix = self.decide(surf, t)
+                if fix.reason.startswith(MAP_EDGE_REASON):
+                    break  # a wider window cannot help; the prior may still keep the fix off the map's edge
                 if not fix.reason.startswith(EDGE_REASON):
                     return fix
                 grow *= 2.0
             if self.edge_fix:
-                cov = np.asarray(window.cov_ne, dtype=float)
-                partial = self.prior_fix(surf, t, cov[-1] if cov.ndim == 3 else cov)
+                partial = self.prior_fix(surf, t, prior_cov)
                 if partial is not None:
                     return partial
             return fix
@@ -530,6 +541,8 @@ class LikelihoodMatcher:
             pk, snn, sne, see, _ = grid_moments(l2, surf.n, surf.e, lmax, n_fix, e_fix)
             p = None
             about = (n_fix, e_fix)
+            if _touches_map_edge(l2, ki, kj):
+                return Fix.no_fix(t, MAP_EDGE_REASON, self.name)
             if self.search_window and _reaches_edge(l2, ki, kj):
                 return Fix.no_fix(t, f"{EDGE_REASON} (the prior may be too confident)", self.name)
             if self.ambiguity_mass < 1.0:
@@ -589,14 +602,9 @@ class LikelihoodMatcher:
         if not grid:  # road map: the vehicle is somewhere across the road
             cov = cov + np.eye(2) * self.track_sigma_m**2
         cov = cov + np.eye(2) * self.min_fix_sigma_m**2
-        max_sig = self.max_fix_sigma_m
-        if max_sig is None:
-            max_sig = 0.25 * min(surf.half) / surf.grow
-        sig = float(np.sqrt(np.linalg.eigvalsh(cov)[0 if (grid and self.search_window) else -1]))
-        if sig > max_sig:  # in a search window: the fix must say something in its better direction
-            return Fix.no_fix(
-                t, f"likelihood too spread: fix sigma {sig:.3g} m above {max_sig:.3g} m", self.name, score
-            )
+        refusal = self._too_spread(surf, cov, t, score, grid)
+        if refusal is not None:
+            return refusal
         self._issued(surf)
         lat, lon = surf.frame.to_latlon(n_fix, e_fix)
         return Fix(t, float(lat), float(lon), cov, True, "", score, self.name)
@@ -610,7 +618,9 @@ class LikelihoodMatcher:
         ``L`` holds more than ``1 / edge_fix_sigma_m^2``. In the others (along a track over a smooth map) the fix
         says nothing: it sits at the prior's mean (no innovation) with a 1-sigma of ``edge_fix_sigma_m``. So a
         section that fixes the cross-track position but not the along-track one gives a cross-track fix rather than
-        nothing. None when the product is still at the window's edge, ambiguous, or holds no information."""
+        nothing. None when the product is still at the window's edge or the map's, ambiguous, or holds no
+        information. Also used for a likelihood cut off by the map's edge (the product, kept off that edge by the
+        prior, is not cut off)."""
         if surf.shape is None or not self.search_window:
             return None
         P = np.asarray(prior_cov, dtype=float).reshape(2, 2)
@@ -629,7 +639,7 @@ class LikelihoodMatcher:
         lp = np.where(np.isfinite(lp), lp, -np.inf)
         pi_, pj_ = divmod(int(np.argmax(lp)), surf.shape[1])
         lp = lp - float(lp[pi_, pj_])
-        if _reaches_edge(lp, pi_, pj_):
+        if _reaches_edge(lp, pi_, pj_) or _touches_map_edge(lp, pi_, pj_):
             return None
         if self.ambiguity_mass < 1.0 and _ambiguity(lp, surf.n, surf.e, pi_, pj_)[0] > self.ambiguity_mass:
             return None
@@ -648,12 +658,46 @@ class LikelihoodMatcher:
         z = V @ np.where(strong, y / np.where(strong, lam, 1.0), 0.0)
         R = V @ np.diag(np.where(strong, 1.0 / np.where(strong, lam, 1.0), self.edge_fix_sigma_m**2)) @ V.T
         R = R + topup + np.eye(2) * (surf.step**2 / 12.0 + self.min_fix_sigma_m**2)
-        max_sig = self.max_fix_sigma_m if self.max_fix_sigma_m is not None else 0.25 * min(surf.half) / surf.grow
-        if float(np.sqrt(np.linalg.eigvalsh(R)[0])) > max_sig:
+        if self._too_spread(replace(surf, prior_cov=P), R, t, float("nan"), True) is not None:
             return None
         self._issued(surf)
         lat, lon = surf.frame.to_latlon(float(z[0]), float(z[1]))
         return Fix(t, float(lat), float(lon), R, True, "", float("nan"), self.name)
+
+    def _too_spread(self, surf: Surface, cov: FloatArray, t: float, score: float, grid: bool) -> Fix | None:
+        """The issuing rule: "likelihood too spread" (no fix) or None (issue). With ``max_fix_sigma_m`` set, the fix's
+        1-sigma in its better direction (in a grid search window; else its worse) must be at most that. By default,
+        in a search window with the INS covariance known, the rule of the batch matchers (issue 16,
+        :func:`._batch.adds_information`): issued when fusing it would shrink the prior's covariance by at least
+        5 % in some direction beyond the window's own information (the window is the prior's). Until 2026-12 the
+        default was a 1-sigma at most a quarter of the first window's half-width (one prior sigma), i.e. at least
+        half the prior's information: on the Osborne tie lines it refused fixes that halved the error of a
+        tactical INS (a fix sigma of 1.5 prior sigmas adds 30 % of the prior's information). Otherwise (whole-map
+        scan, road maps, no prior) the old quarter of the window half-width."""
+        from ._batch import MIN_INFORMATION_RATIO, information_ratio
+
+        P = surf.prior_cov
+        if self.max_fix_sigma_m is None and grid and self.search_window and P is not None and np.all(np.isfinite(P)):
+            r = information_ratio(cov, np.asarray(P, dtype=float).reshape(2, 2), np.asarray(surf.half, dtype=float))
+            if r >= MIN_INFORMATION_RATIO:
+                return None
+            sf = np.sqrt(np.maximum(np.linalg.eigvalsh(cov), 0.0))
+            return Fix.no_fix(
+                t,
+                f"likelihood too spread: the fix adds no information over the prior (information ratio {r:.2g} < "
+                f"{MIN_INFORMATION_RATIO:g}; fix sigmas {sf[0]:.3g} / {sf[-1]:.3g} m)",
+                self.name,
+                score,
+            )
+        max_sig = self.max_fix_sigma_m
+        if max_sig is None:
+            max_sig = 0.25 * min(surf.half) / surf.grow
+        sig = float(np.sqrt(np.linalg.eigvalsh(cov)[0 if (grid and self.search_window) else -1]))
+        if sig > max_sig:  # in a search window: the fix must say something in its better direction
+            return Fix.no_fix(
+                t, f"likelihood too spread: fix sigma {sig:.3g} m above {max_sig:.3g} m", self.name, score
+            )
+        return None
 
     # ------------------------------------------------------------------ honesty
     def temperature(self, surf: Surface, n_fix: float, e_fix: float) -> float:
@@ -776,6 +820,28 @@ def _reaches_edge(l2: FloatArray, ki: int, kj: int) -> bool:
         return False
     border = np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]])
     return bool(np.any(border == main))
+
+
+def _touches_map_edge(l2: FloatArray, ki: int, kj: int) -> bool:
+    """True when the peak's region (as in :func:`_ambiguity`) borders a scanned node without a likelihood (a
+    hypothesis that puts some reading where the map has no values: ``-inf`` with ``off_map = "impossible"``). The
+    likelihood is then cut off at the map's edge, not by the readings: beyond it the readings may fit as well or
+    better, so the peak is pushed away from the edge and the moments are too small. On the Osborne tie lines, which
+    begin at the map's edge, the first ML fix of a tactical run was 50-120 m off towards the map's inside with
+    sigmas of 10-18 m (fix NEES 24-70, 4 of 9 fixes whose section came within 300 m of the edge; 1.2 elsewhere),
+    and the filter took it as a tilt and velocity error (10149 at 65 m/s: 1.7 km RMS against 0.4 km free inertial)."""
+    region = _peak_region(l2, ki, kj)
+    if region is None:
+        return False
+    near = ndimage.binary_dilation(region, structure=np.ones((3, 3), dtype=bool))
+    return bool(np.any(near & ~np.isfinite(l2)))
+
+
+def _peak_region(l2: FloatArray, ki: int, kj: int) -> NDArray[np.bool_] | None:
+    """The 8-connected part of ``l2 >= -HPD_LOG_DROP`` holding node ``(ki, kj)`` (None if that node is outside)."""
+    lab, _ = ndimage.label(l2 >= -HPD_LOG_DROP, structure=np.ones((3, 3), dtype=bool))
+    main = lab[ki, kj]
+    return None if main == 0 else lab == main
 
 
 def ins_drift_rate(t: FloatArray, cov_ne: FloatArray | None) -> FloatArray:
