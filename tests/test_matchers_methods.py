@@ -396,8 +396,8 @@ def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
     INS's deformation as a velocity error (``temper``, issue 13) both are honest (NEES 1.21 and 1.28) and the
     adaptive batch is the more accurate; without the temper 7.6 against 92. The tracks run off the 4 km map's north
     edge in their last scans; ``off_map = "impossible"`` keeps that part of the batch out of the offset likelihood, as
-    when these figures were measured (with "unknown", the default since issue 13, the rigid batch's misfit on the map
-    makes the field-unknown hypothesis win: its NEES is 30)."""
+    when these figures were measured (the default "holes" does the same beyond the map's extent; with "unknown" the
+    rigid batch's misfit on the map makes the field-unknown hypothesis win: its NEES is 30)."""
     rng = np.random.default_rng(31)
     fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
     fmap.metadata["level_sigma"] = 0.0  # readings drawn from this map: no level offset

@@ -1,4 +1,5 @@
-"""PMHT near holes in the map (issue 13): readings where the map has no value are "field unknown", not impossible.
+"""PMHT near holes in the map (issue 13): readings where the map has no value inside its extent are "field unknown",
+not impossible (``off_map = "holes"``, the default); beyond the map's extent they stay impossible.
 
 The Rio survey's map (gridded from its flight lines) has 2-2.5 km holes where its tie lines cross gaps between the
 flight lines; PMHT's rigid-offset likelihood gave every offset whose track crossed a hole zero likelihood, so a
@@ -51,10 +52,11 @@ def _fix_nees(m: PMHTMatcher, hole: bool, n: int = 20) -> np.ndarray:
 
 
 def test_pmht_fixes_over_a_hole_in_the_map_are_honest():
-    """20 batches whose last third crosses a hole: by default (``off_map = "unknown"``) most are issued and honest
+    """20 batches whose last third crosses a hole: by default (``off_map = "holes"``) most are issued and honest
     (fix NEES mean <= 3); with the old rule (the hole impossible) the fixes that are issued are far off with small
     covariances (mean NEES > 20: 408 when written) and fewer are issued (9 against 17)."""
     unknown = _fix_nees(PMHTMatcher(), hole=True)
+    assert np.array_equal(unknown, _fix_nees(PMHTMatcher(off_map="unknown"), hole=True), equal_nan=True)
     impossible = _fix_nees(PMHTMatcher(off_map="impossible"), hole=True)
     assert np.sum(np.isfinite(unknown)) >= 12
     assert np.nanmean(unknown) <= 3.0
@@ -72,6 +74,22 @@ def test_pmht_off_map_rule_changes_nothing_on_a_map_without_holes():
         if a.available:
             assert np.allclose([a.lat, a.lon], [b.lat, b.lon], rtol=0, atol=1e-12)
             assert np.allclose(a.cov_ne, b.cov_ne, rtol=1e-9)
+
+
+def test_pmht_holes_are_inside_the_map_extent_only():
+    """``"holes"``: a place without a map value is a hole (field unknown) inside the map's bounding box and
+    impossible beyond it; ``"unknown"`` takes both as holes; ``"impossible"`` neither."""
+    from magnav_ins.aiding.matchers._local import make_frame
+
+    fmap, w, _ = _flight(0, hole=True)
+    frame = make_frame(fmap, float(w.lat[-1]), float(w.lon[-1]))
+    x_last = np.array(frame.to_ne(w.lat[-1], w.lon[-1])).ravel()
+    n = np.array([x_last[0], x_last[0], x_last[0] - 1e4])  # in the hole, on the map, 10 km south of the 6 km map
+    e = np.array([x_last[1] + 300.0, x_last[1] - 1500.0, x_last[1]])
+    field = PMHTMatcher()._field(fmap, frame)
+    assert field is not None and field[2](n, e).tolist() == [True, True, False]
+    assert PMHTMatcher(off_map="unknown")._field(fmap, frame)[2] is None  # every place without a value a hole
+    assert PMHTMatcher(off_map="impossible")._field(fmap, frame) is None
 
 
 def test_pmht_off_map_option_is_checked():
