@@ -466,8 +466,8 @@ class PMHTMatcher:
     (coarsened so a scan reads at most ``max_scan_nodes`` map values); ``variance_factor``, ``crlb_floor``,
     ``ambiguity_floor`` (``ambiguity_grid``, ``ambiguity_mass``, ``ambiguity_deprior``, ``deprior_location``,
     ``temper``), ``em_start`` ("likelihood" | "ins") and ``partial_fixes``: the fix covariance terms of the module
-    docstring; ``off_map`` ("unknown" | "impossible"), ``edge_check`` and ``gate_growth``: module docstring, "Off the
-    map" and "Search gate"."""
+    docstring; ``off_map`` ("holes" | "unknown" | "impossible"), ``edge_check`` and ``gate_growth``: module
+    docstring, "Off the map" and "Search gate"."""
 
     batch: int = 30
     candidates: int = 20
@@ -982,7 +982,9 @@ class PMHTMatcher:
             return None
         inside = None
         box = getattr(fmap, "bounds_latlon", None)
-        if self.off_map == "holes" and box is not None:
+        if self.off_map == "holes" and box is None:
+            return None  # no extent to tell a hole from beyond the map: every place without a value impossible
+        if self.off_map == "holes":
             la0, la1, lo0, lo1 = (float(b) for b in box)
 
             def inside(n: FloatArray, e: FloatArray) -> NDArray[np.bool_]:
