@@ -396,7 +396,10 @@ def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
     against 15 / 20 and 827 (median 721) for the rigid batch. Still above 2: a velocity error is a deterministic
     ramp, which a random walk of the same end sigma does not cover. Since the offset likelihood is tempered for the
     INS's deformation as a velocity error (``temper``, issue 13) both are honest (NEES 1.21 and 1.28) and the
-    adaptive batch is the more accurate; without the temper 7.6 against 92."""
+    adaptive batch is the more accurate; without the temper 7.6 against 92. The tracks run off the 4 km map's north
+    edge in their last scans; ``off_map = "impossible"`` keeps that part of the batch out of the offset likelihood, as
+    when these figures were measured (the default "holes" does the same beyond the map's extent; with "unknown" the
+    rigid batch's misfit on the map makes the field-unknown hypothesis win: its NEES is 30)."""
     rng = np.random.default_rng(31)
     fmap = random_field_map((400, 400), 10.0, 300.0, 20.0, rng, kind=KIND_G, origin=ORIGIN)
     fmap.metadata["level_sigma"] = 0.0  # readings drawn from this map: no level offset
@@ -413,7 +416,7 @@ def test_pmht_adaptive_drift_follows_a_drifting_ins_track():
         w = MatchWindow(FieldReadings(tt, z, sig, KIND_G), lat, lon, np.zeros(T), P, np.tile(v, (T, 1)))
         for ad in (True, False):
             for temper in (True, False):
-                fix = PMHTMatcher(adaptive_drift=ad, temper=temper).match(w, fmap)
+                fix = PMHTMatcher(adaptive_drift=ad, temper=temper, off_map="impossible").match(w, fmap)
                 if fix.available:
                     d = local(fmap, fix.lat, fix.lon) - truth[-1]
                     nees[ad, temper].append(float(d @ np.linalg.solve(fix.cov_ne, d)))

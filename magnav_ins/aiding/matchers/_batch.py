@@ -341,3 +341,50 @@ def loewner_max(A: FloatArray, B: FloatArray, big: float = np.inf, information: 
         lam = np.maximum(lam, 1.0)
     out = L @ ((W * np.minimum(lam, big / max(float(ev[0]), 1e-300))) @ W.T) @ L.T
     return 0.5 * (out + out.T)
+
+
+#: a peak's region: where the log-likelihood is within this of its maximum (the 99.9 % region of a 2-D Gaussian,
+#: chi-square(2) quantile 13.8, halved; as the likelihood matchers' ``HPD_LOG_DROP``)
+EDGE_LOG_DROP = 0.5 * 13.8155
+
+
+def edge_normals(ll: FloatArray, k_best: int, drop: float = EDGE_LOG_DROP) -> FloatArray:
+    """Unit outward normals (J, 2) north/east of the borders of a regular ``(m_n, m_e)`` offset grid (``ll`` its
+    log-likelihood, rows north from the most negative offset, columns east) that the best peak's region touches:
+    the connected region (8-neighbours) about node ``k_best`` (flat index) where ``ll`` is within ``drop`` (default
+    :data:`EDGE_LOG_DROP`, the 99.9 % region) of its maximum. Where it touches a border the likelihood goes on beyond the grid and its
+    moments there are truncated. Empty (0, 2) when it touches none."""
+    from scipy import ndimage
+
+    ll = np.asarray(ll, float)
+    top = float(ll.flat[k_best])
+    mask = np.isfinite(ll) & (ll >= top - float(drop))
+    lab, _ = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
+    main = lab.flat[k_best]
+    if main == 0:
+        return np.zeros((0, 2))
+    sides = ((lab[0] == main, (-1.0, 0.0)), (lab[-1] == main, (1.0, 0.0)),
+             (lab[:, 0] == main, (0.0, -1.0)), (lab[:, -1] == main, (0.0, 1.0)))  # fmt: skip
+    out = [n for hit, n in sides if np.any(hit)]
+    return np.array(out, float).reshape(-1, 2)
+
+
+def truncated_sides(normals: FloatArray, cov: FloatArray, half: FloatArray) -> FloatArray:
+    """The border normals (J', 2) among ``normals`` (:func:`edge_normals`: the likelihood's peak region runs out of
+    the gate through them) along which a fix of covariance ``cov`` (2, 2) m^2 claims to know more than the gate of
+    half-widths ``half`` (2,) m does: its information along ``n``, ``n' C^-1 n``, exceeds ``1 / (n . half)^2`` (the
+    position along ``n`` known to better than the gate's half-width, the other direction held). Beyond such a
+    border the likelihood is unknown, so what the fix claims along ``n`` rests on a truncated surface (a mode cut by
+    the border, or the true mode outside it). A ridge that runs out of the gate along the direction the fix leaves
+    open (its information across the ridge only) is not truncated in that sense; the information is used, not the
+    marginal variance, so that a long ridge tilted towards the border does not hide a narrow direction crossing it
+    (a slightly tilted along-track ridge is then truncated too: on Rio most batches, module docstring of
+    :mod:`.pmht`, "Search gate")."""
+    n = np.asarray(normals, float).reshape(-1, 2)
+    if n.size == 0:
+        return n
+    c = 0.5 * (np.asarray(cov, float) + np.asarray(cov, float).T)
+    ev, V = np.linalg.eigh(c)
+    info = (V / np.maximum(ev, 1e-300)) @ V.T
+    h = np.abs(n @ np.asarray(half, float))
+    return n[np.einsum("ji,ik,jk->j", n, info, n) * h**2 > 1.0]
