@@ -240,6 +240,69 @@ def pooled(
     return out
 
 
+# ------------------------------------------------------------------------------------------------ the bound
+def case_bound(case: Case, count_correlation: bool = True) -> dict[str, Any]:
+    """The information bound of one case (:func:`magnav_ins.studies.crlb.flight_crlb` with the suite's reading
+    model ``z = m(p) + c + b(p) + v``: the map's error layer at the true position added to the 1 nT sensor variance,
+    readings weighed by ``min(1, ds / ell)``, the level ``c`` a state with the matchers' prior), next to the free
+    INS's covariance along the same steps, both on the run's output samples (:data:`OUTPUT_SAMPLES`).
+
+    Returns ``t`` (s), ``crlb`` and ``free`` (``sqrt(P_NN + P_EE)``, m, per sample), ``crlb_rms`` / ``free_rms``
+    (RMS over the samples, m), the quarter means ``crlb_q2``, ``crlb_q4``, ``free_q2``, ``free_q4`` (m) and
+    ``crlb_wang`` / ``free_wang``: whether Wang's two conditions (:func:`magnav_ins.studies.metrics.is_divergent`)
+    hold for an error following the bound (or the free covariance, tested against itself). ``count_correlation``:
+    False counts every reading as independent (no correlation weighting; a still lower bound)."""
+    from ..aiding.matchers.map_error import resolve_level, resolve_map_error
+    from . import metrics as M
+    from .crlb import flight_crlb
+    from .model import PipelineModel, output_dt
+
+    model = PipelineModel(case.scenario(ESTIMATORS[:1]), max_samples=OUTPUT_SAMPLES)
+    sc, sh = model.scenario, model.shared()
+    truth, fmap = sh["truth"], sh["map"]
+    dt_out = output_dt(sc, truth, OUTPUT_SAMPLES)
+    sel = np.unique(
+        np.append(np.searchsorted(truth.t, np.arange(truth.t[0], truth.t[-1] + 1e-9, dt_out) - 1e-6), len(truth.t) - 1)
+    )  # the samples of PipelineModel.run
+    t_out = truth.t[sel]
+    me = resolve_map_error(fmap)
+    te, b = flight_crlb(
+        sc, truth, sh["imu"], fmap, map_error=me, level_sigma=resolve_level(fmap).sigma,
+        count_correlation=count_correlation,
+    )  # fmt: skip
+    _, f = flight_crlb(sc, truth, sh["imu"], fmap, readings=False)
+    crlb = np.sqrt(np.interp(t_out, te, b**2))
+    free = np.sqrt(np.interp(t_out, te, f**2))
+    qb, qf = M.quarter_means(crlb), M.quarter_means(free)
+    return {
+        "t": t_out,
+        "crlb": crlb,
+        "free": free,
+        "crlb_rms": float(np.sqrt(np.mean(crlb**2))),
+        "free_rms": float(np.sqrt(np.mean(free**2))),
+        "crlb_q2": float(qb[1]),
+        "crlb_q4": float(qb[3]),
+        "free_q2": float(qf[1]),
+        "free_q4": float(qf[3]),
+        "crlb_wang": M.is_divergent(crlb, free),
+        "free_wang": M.is_divergent(free, free),
+    }
+
+
+def pooled_bound(bounds: list[dict[str, Any]]) -> dict[str, float]:
+    """A group's bound figures from :func:`case_bound` results, pooled as the suite pools the RMS (every case has
+    the same runs and samples): ``crlb_rms_horizontal_m`` and ``crlb_free_rms_horizontal_m`` (the free INS's
+    expected RMS from its covariance), m; ``crlb_wang_rate`` and ``crlb_free_wang_rate`` (share of cases)."""
+    if not bounds:
+        return {}
+    return {
+        "crlb_rms_horizontal_m": float(np.sqrt(np.mean([np.mean(b["crlb"] ** 2) for b in bounds]))),
+        "crlb_free_rms_horizontal_m": float(np.sqrt(np.mean([np.mean(b["free"] ** 2) for b in bounds]))),
+        "crlb_wang_rate": float(np.mean([b["crlb_wang"] for b in bounds])),
+        "crlb_free_wang_rate": float(np.mean([b["free_wang"] for b in bounds])),
+    }
+
+
 @dataclass
 class SuiteResult:
     """``groups``: per group the pooled figures per estimator, or ``{"skipped": reason}``; ``cases``: per case
