@@ -105,3 +105,23 @@ def test_flight_crlb_reading_model_orders_and_equivalences():
     )
     assert np.all(with_level <= free + tol) and with_level[-1] < 0.5 * free[-1]
     assert with_level[-1] > 1.5 * plain[-1]
+
+
+def test_suite_case_bound_and_its_pooling(tmp_path):
+    """The suite's bound of a case (an Osborne tie line, 60 s): on the run's output samples, below the free INS's
+    covariance, pooled into every estimator's figures and the report's xCRLB column."""
+    from magnav_ins.studies import suite
+
+    case = suite.Case("osborne_tactical", suite.OSBORNE_SURVEY, suite.OSBORNE_MAP, 10152, 65.0, "tactical",
+                      trajectory_keys=(("duration_s", 60.0),))  # fmt: skip
+    b = suite.case_bound(case)
+    assert len(b["t"]) == len(b["crlb"]) == len(b["free"]) and b["t"][-1] == pytest.approx(60.0)
+    assert np.all(b["crlb"] <= b["free"] + 1e-9) and b["crlb_rms"] == pytest.approx(np.sqrt(np.mean(b["crlb"] ** 2)))
+    bi = suite.case_bound(case, count_correlation=False)
+    assert bi["crlb_rms"] < b["crlb_rms"]  # every reading independent: a lower (more optimistic) bound
+    two = suite.pooled_bound([b, bi])
+    assert two["crlb_rms_horizontal_m"] == pytest.approx(np.sqrt(0.5 * (b["crlb_rms"] ** 2 + bi["crlb_rms"] ** 2)))
+    res = suite.run_suite(seeds=1, cases=[case], estimators=("pmht+ukf",), rio_survey=tmp_path / "absent.csv.xz")
+    m = res.groups["osborne_tactical"]["pmht+ukf"]
+    assert m["crlb_rms_horizontal_m"] == pytest.approx(b["crlb_rms"]) and m["crlb_wang_rate"] in (0.0, 1.0)
+    assert "xCRLB" in suite.report(res)

@@ -325,10 +325,13 @@ def run_suite(
     quiet: bool = True,
     estimators: tuple[str, ...] | None = None,
     cases: list[Case] | None = None,
+    bound: bool = True,
 ) -> SuiteResult:
     """Run the suite (module docstring); ``only`` limits it to some groups, ``estimators`` to some of
     :data:`ESTIMATORS` (by name; the others are not flown, their settings unchanged); ``cases`` replaces the
-    suite's own cases (e.g. those used for no choice, as the README's verification table)."""
+    suite's own cases (e.g. those used for no choice, as the README's verification table). ``bound``: add each
+    case's information bound (:func:`case_bound`, a fraction of a second per case) to every estimator's figures
+    (:func:`pooled_bound`'s keys, ``crlb_rms_horizontal_m`` among them)."""
     if seeds < 1:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
     known = [e["name"] for e in ESTIMATORS]
@@ -364,10 +367,18 @@ def run_suite(
     per_case = [
         (c, pooled(summaries[k * seeds : (k + 1) * seeds], ests)) for k, c in enumerate(cases)
     ]  # runs are returned in order
+    bounds = [case_bound(c) for c in cases] if bound else []
+    for (_, figs), b in zip(per_case, bounds, strict=False):
+        for m in figs.values():
+            m.update(pooled_bound([b]))
     groups: dict[str, Any] = {}
     for g in GROUPS:
         runs = [s for k, c in enumerate(cases) if c.group == g for s in summaries[k * seeds : (k + 1) * seeds]]
         groups[g] = pooled(runs, ests) if runs else {"skipped": skipped.get(g, "no case")}
+        if runs and bounds:  # the information bound of the group's cases, beside each estimator's RMS
+            gb = pooled_bound([b for b, c in zip(bounds, cases, strict=True) if c.group == g])
+            for m in groups[g].values():
+                m.update(gb)
     return SuiteResult(groups, per_case, time.perf_counter() - t0, len(summaries))
 
 
@@ -382,19 +393,26 @@ def _fmt(x: Any, pct: bool = False) -> str:
 
 TABLE_HEADER = (
     f"{'case':28s} {'estimator':17s} {'RMS':>8s} {'medRMS':>8s} {'max':>8s} {'NEES':>7s} {'fixNEES':>8s} {'HPLexc':>7s} "
-    f"{'avail':>6s} {'div':>6s} {'divNEES':>7s} {'free':>8s}"
+    f"{'avail':>6s} {'div':>6s} {'divNEES':>7s} {'free':>8s} {'xCRLB':>6s}"
 )
+
+
+def _x_crlb(m: dict[str, Any]) -> str:
+    """The estimator's RMS in units of the information bound's (``-`` without the bound)."""
+    b = m.get("crlb_rms_horizontal_m")
+    return "-" if not b or m.get("rms_horizontal_m") is None else f"{float(m['rms_horizontal_m']) / b:.1f}"
 
 
 def table_rows(name: str, figures: dict[str, dict[str, Any]]) -> list[str]:
     """Text rows of one case or group: RMS, median run RMS, max, NEES, fix NEES, HPL exceedance, availability,
-    divergence (Wang's error-growth test and the filter's NEES test, :mod:`.metrics`), free RMS per estimator."""
+    divergence (Wang's error-growth test and the filter's NEES test, :mod:`.metrics`), free RMS per estimator, and
+    the RMS in units of the information bound's (``xCRLB``, :func:`case_bound`)."""
     return [
         f"{name:28s} {est:17s} {_fmt(m['rms_horizontal_m']):>8s} "
         f"{_fmt(m.get('median_run_rms_horizontal_m')):>8s} {_fmt(m['max_horizontal_m']):>8s} "
         f"{_fmt(m['nees_mean']):>7s} {_fmt(m['fix_nees_mean']):>8s} {_fmt(m['hpl_exceedance'], True):>7s} "
         f"{_fmt(m['availability'], True):>6s} {_fmt(m['divergence_rate'], True):>6s} "
-        f"{_fmt(m['nees_divergence_rate'], True):>7s} {_fmt(m['free_rms_horizontal_m']):>8s}"
+        f"{_fmt(m['nees_divergence_rate'], True):>7s} {_fmt(m['free_rms_horizontal_m']):>8s} {_x_crlb(m):>6s}"
         for est, m in figures.items()
     ]
 
