@@ -117,6 +117,8 @@ def test_suite_case_bound_and_its_pooling(tmp_path):
     b = suite.case_bound(case)
     assert len(b["t"]) == len(b["crlb"]) == len(b["free"]) and b["t"][-1] == pytest.approx(60.0)
     assert np.all(b["crlb"] <= b["free"] + 1e-9) and b["crlb_rms"] == pytest.approx(np.sqrt(np.mean(b["crlb"] ** 2)))
+    mc = suite.case_bound(case, draws=50)
+    assert mc["crlb_rms"] == b["crlb_rms"] and 0.0 <= mc["crlb_wang_mc"] <= 1.0 and 0.0 <= mc["free_wang_mc"] <= 1.0
     bi = suite.case_bound(case, count_correlation=False)
     assert bi["crlb_rms"] < b["crlb_rms"]  # every reading independent: a lower (more optimistic) bound
     two = suite.pooled_bound([b, bi])
@@ -125,3 +127,23 @@ def test_suite_case_bound_and_its_pooling(tmp_path):
     m = res.groups["osborne_tactical"]["pmht+ukf"]
     assert m["crlb_rms_horizontal_m"] == pytest.approx(b["crlb_rms"]) and m["crlb_wang_rate"] in (0.0, 1.0)
     assert "xCRLB" in suite.report(res)
+
+
+def test_bound_monte_carlo_runs_have_the_bounds_spread():
+    """The Kalman filter of the linearised flight attains the bound: over many draws its horizontal mean-square error
+    is the bound's ``P_NN + P_EE`` and the free INS's is the free covariance's (within the Monte Carlo spread)."""
+    from magnav_ins.maps.variability import posterior_crlb
+    from magnav_ins.studies.crlb import HOLD, bound_monte_carlo, flight_system
+
+    sc = _scenario()
+    sh = model.PipelineModel(sc).shared()
+    args = (sc, sh["truth"], sh["imu"], sh["map"])
+    edges, P0, Phi, Q, J = flight_system(*args, map_error=MapErrorModel("option", 10.0, 300.0), level_sigma=30.0)
+    P = posterior_crlb(P0, Phi, Q, J, hold=HOLD)
+    Pf = posterior_crlb(P0, Phi, Q, np.zeros_like(J), hold=HOLD)
+    err, free = bound_monte_carlo(P0, Phi, Q, J, 2000, np.random.default_rng(5))
+    for k in (len(edges) // 3, len(edges) - 1):
+        # mean of a chi-square(2)-like sum over 2000 draws: ~3 % spread
+        assert np.mean(err[:, k] ** 2) == pytest.approx(P[k, 0, 0] + P[k, 1, 1], rel=0.1)
+        assert np.mean(free[:, k] ** 2) == pytest.approx(Pf[k, 0, 0] + Pf[k, 1, 1], rel=0.1)
+    assert np.mean(err[:, -1] ** 2) < 0.3 * np.mean(free[:, -1] ** 2)

@@ -37,6 +37,8 @@ FloatArray = NDArray[np.float64]
 
 #: longest covariance step of the bound (s); readings fall on step ends
 CRLB_STEP_S = 10.0
+#: states held by the altitude hold (down position and velocity), as the studies hold them
+HOLD = (2, 5)
 
 
 def flight_crlb(
@@ -62,12 +64,38 @@ def flight_crlb(
     to the sensor variance, and with ``count_correlation`` each reading is weighed by ``min(1, ds / ell)``);
     ``level_sigma`` (map unit) > 0: an unknown level with that prior, carried as a state (0: the level known).
     ``readings=False``: no reading at all, the free-inertial covariance along the same steps."""
+    from ..maps.variability import posterior_crlb
+
+    edges, P0, Phi, Q, J = flight_system(
+        sc, truth, imu, fmap, step_s, map_error=map_error, level_sigma=level_sigma,
+        count_correlation=count_correlation, readings=readings,
+    )  # fmt: skip
+    P = posterior_crlb(P0, Phi, Q, J, hold=HOLD)
+    return edges, np.sqrt(P[:, 0, 0] + P[:, 1, 1])
+
+
+def flight_system(
+    sc: Any,
+    truth: Any,
+    imu: Any,
+    fmap: Any,
+    step_s: float = CRLB_STEP_S,
+    *,
+    map_error: Any = None,
+    level_sigma: float = 0.0,
+    count_correlation: bool = True,
+    readings: bool = True,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The linear(ised) system behind :func:`flight_crlb` (same arguments): step ends ``edges`` (K+1,) s, the prior
+    ``P0`` (n, n), ``Phi`` and ``Q`` (K, n, n) over each step and the readings' Fisher information ``J`` (K, n, n)
+    added at each step's end; ``n`` = 15 (LAYOUT_15) plus one level state per field component with ``level_sigma``
+    > 0. States :data:`HOLD` are held by the mechanisation."""
     from scipy.spatial.transform import Rotation
 
     from ..core.frames import latlon_to_meters
     from ..ins.error_model import discretize, system_matrices
     from ..ins.imu_models import get_grade
-    from ..maps.variability import fisher_information_ne, posterior_crlb
+    from ..maps.variability import fisher_information_ne
     from .model import initial_estimate
 
     grade = get_grade(sc.imu.grade)
@@ -122,8 +150,7 @@ def flight_crlb(
         idx = [0, 1, *range(15, n)]
         for r in np.flatnonzero(good):
             J[at[r]][np.ix_(idx, idx)] += info[r]
-    P = posterior_crlb(P0, Phi, Q, J, hold=(2, 5))
-    return edges, np.sqrt(P[:, 0, 0] + P[:, 1, 1])
+    return edges, P0, Phi, Q, J
 
 
 def crlb_metrics(t: FloatArray, sigma_h: FloatArray) -> dict[str, float]:
@@ -132,3 +159,62 @@ def crlb_metrics(t: FloatArray, sigma_h: FloatArray) -> dict[str, float]:
     mid2 = 0.5 * (sigma_h[1:] ** 2 + sigma_h[:-1] ** 2)
     rms = float(np.sqrt(np.sum(mid2 * dt) / np.sum(dt))) if dt.size else float(sigma_h[-1])
     return {"crlb_rms_horizontal_m": rms, "crlb_final_horizontal_m": float(sigma_h[-1])}
+
+
+def bound_monte_carlo(
+    P0: FloatArray,
+    Phi: FloatArray,
+    Q: FloatArray,
+    J: FloatArray,
+    runs: int,
+    rng: np.random.Generator,
+    hold: tuple[int, ...] = HOLD,
+) -> tuple[FloatArray, FloatArray]:
+    """Runs of the estimator that attains the bound: the Kalman filter of the linear-Gaussian system that
+    :func:`flight_system` describes (its covariance is :func:`~magnav_ins.maps.variability.posterior_crlb`'s),
+    with the free INS of the same draw beside it, for Wang's test on the same draws as the suite makes it.
+
+    Each run draws the initial error ``x0 ~ N(0, P0)``, the process noise of every step and the readings' noise;
+    ``J``'s eigen-decomposition gives readings ``u^T x + v``, ``v ~ N(0, 1 / lambda)`` with the same information.
+    The free INS's error is ``x`` (never corrected), the filter's ``x - x_hat``. Held states (``hold``) have their
+    variance kept and their correlations dropped each step, as in ``posterior_crlb``: their effect enters the other
+    states as independent noise each step. Returns the horizontal errors (m), filter and free, each (runs, K+1)."""
+    n = P0.shape[0]
+    free_i = [i for i in range(n) if i not in hold]
+    hold_l = list(hold)
+    P = np.asarray(P0, float)[np.ix_(free_i, free_i)].copy()
+    P_hh = np.asarray(P0, float)[np.ix_(hold_l, hold_l)] if hold_l else None
+    L0 = np.linalg.cholesky(P + 1e-18 * np.eye(len(free_i)))
+    x = rng.standard_normal((runs, len(free_i))) @ L0.T
+    e = x.copy()
+    K = Phi.shape[0]
+    err = np.empty((runs, K + 1))
+    fre = np.empty((runs, K + 1))
+    err[:, 0] = np.hypot(e[:, 0], e[:, 1])
+    fre[:, 0] = err[:, 0]
+    for k in range(K):
+        F = Phi[k][np.ix_(free_i, free_i)]
+        Qk = Q[k][np.ix_(free_i, free_i)]
+        if hold_l:
+            Fh = Phi[k][np.ix_(free_i, hold_l)]
+            Qk = Qk + Fh @ P_hh @ Fh.T
+        Qk = 0.5 * (Qk + Qk.T)
+        w, V = np.linalg.eigh(Qk)
+        noise = (rng.standard_normal((runs, len(free_i))) * np.sqrt(np.maximum(w, 0.0))) @ V.T
+        x = x @ F.T + noise
+        e = e @ F.T + noise
+        P = F @ P @ F.T + Qk
+        Jf = J[k][np.ix_(free_i, free_i)]
+        if np.any(Jf):
+            lam, U = np.linalg.eigh(0.5 * (Jf + Jf.T))
+            keep = lam > 1e-12 * max(float(lam.max()), 1e-300)
+            H, lam = U[:, keep].T, lam[keep]
+            S = H @ P @ H.T + np.diag(1.0 / lam)
+            G = np.linalg.solve(S, H @ P).T  # gain P H^T S^-1
+            v = rng.standard_normal((runs, len(lam))) / np.sqrt(lam)
+            e = e - (e @ H.T + v) @ G.T
+            IKH = np.eye(len(free_i)) - G @ H
+            P = IKH @ P @ IKH.T + G @ np.diag(1.0 / lam) @ G.T
+        err[:, k + 1] = np.hypot(e[:, 0], e[:, 1])
+        fre[:, k + 1] = np.hypot(x[:, 0], x[:, 1])
+    return err, fre

@@ -241,7 +241,7 @@ def pooled(
 
 
 # ------------------------------------------------------------------------------------------------ the bound
-def case_bound(case: Case, count_correlation: bool = True) -> dict[str, Any]:
+def case_bound(case: Case, count_correlation: bool = True, draws: int = 0) -> dict[str, Any]:
     """The information bound of one case (:func:`magnav_ins.studies.crlb.flight_crlb` with the suite's reading
     model ``z = m(p) + c + b(p) + v``: the map's error layer at the true position added to the 1 nT sensor variance,
     readings weighed by ``min(1, ds / ell)``, the level ``c`` a state with the matchers' prior), next to the free
@@ -251,7 +251,10 @@ def case_bound(case: Case, count_correlation: bool = True) -> dict[str, Any]:
     (RMS over the samples, m), the quarter means ``crlb_q2``, ``crlb_q4``, ``free_q2``, ``free_q4`` (m) and
     ``crlb_wang`` / ``free_wang``: whether Wang's two conditions (:func:`magnav_ins.studies.metrics.is_divergent`)
     hold for an error following the bound (or the free covariance, tested against itself). ``count_correlation``:
-    False counts every reading as independent (no correlation weighting; a still lower bound)."""
+    False counts every reading as independent (no correlation weighting; a still lower bound). ``draws`` > 0 adds
+    ``crlb_wang_mc`` and ``free_wang_mc``: the share of that many runs of the estimator attaining the bound
+    (:func:`magnav_ins.studies.crlb.bound_monte_carlo`, seeded from the case name) that Wang's test flags against
+    the free INS of the same draw, and of the free INS against itself."""
     from ..aiding.matchers.map_error import resolve_level, resolve_map_error
     from . import metrics as M
     from .crlb import flight_crlb
@@ -274,7 +277,22 @@ def case_bound(case: Case, count_correlation: bool = True) -> dict[str, Any]:
     crlb = np.sqrt(np.interp(t_out, te, b**2))
     free = np.sqrt(np.interp(t_out, te, f**2))
     qb, qf = M.quarter_means(crlb), M.quarter_means(free)
+    mc: dict[str, float] = {}
+    if draws > 0:
+        from .crlb import bound_monte_carlo, flight_system
+
+        _, P0, Phi, Q, J = flight_system(
+            sc, truth, sh["imu"], fmap, map_error=me, level_sigma=resolve_level(fmap).sigma,
+            count_correlation=count_correlation,
+        )  # fmt: skip
+        err, fre = bound_monte_carlo(P0, Phi, Q, J, draws, np.random.default_rng(zlib.crc32(case.name.encode())))
+        at = np.clip(np.searchsorted(te, t_out - 1e-6), 0, len(te) - 1)  # the step end at (or just after) a sample
+        mc = {
+            "crlb_wang_mc": float(np.mean([M.is_divergent(a[at], z[at]) for a, z in zip(err, fre, strict=True)])),
+            "free_wang_mc": float(np.mean([M.is_divergent(z[at], z[at]) for z in fre])),
+        }
     return {
+        **mc,
         "t": t_out,
         "crlb": crlb,
         "free": free,
