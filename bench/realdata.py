@@ -3,6 +3,7 @@ is flown, against which maps, with which estimators and set-up) run from the pro
 ``../shared/data`` holds the Rio survey.
 
     python bench/realdata.py --json [--quick] [--jobs 2] [--seeds N] [--only GROUP,...] [--estimators NAME,...]
+    python bench/realdata.py --bound-only DRAWS [--json] [--quick] [--only GROUP,...]   # the bound alone
 
 Prints the per-case and per-group tables (stderr with ``--json``) and, with ``--json``, one line on stdout:
 ``{"groups": {"osborne_tactical": {ESTIMATOR: {...}}, "osborne_navigation": {...}, "rio": {...}}}`` with, per
@@ -42,7 +43,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", default=None, help="comma-separated groups to run (default all)")
     p.add_argument("--estimators", default=None, help="comma-separated estimators to fly (e.g. pmht+ukf; default all)")
     p.add_argument("--no-bound", action="store_true", help="leave out the information bound (crlb_* keys)")
+    p.add_argument(
+        "--bound-only",
+        type=int,
+        default=None,
+        metavar="DRAWS",
+        help="fly nothing: the bound per case and group, with DRAWS runs at the bound each for Wang's test",
+    )
     args = p.parse_args(argv)
+    if args.bound_only is not None:
+        from magnav_ins.studies.suite import suite_bounds
+
+        only = tuple(args.only.split(",")) if args.only else None
+        groups, text = suite_bounds(quick=args.quick, only=only, rio_survey=RIO_SURVEY, draws=args.bound_only)
+        print(text, file=sys.stderr if args.json else sys.stdout)
+        if args.json:
+            print(json.dumps({"bounds": groups}, allow_nan=False))
+        return 0
     only = tuple(args.only.split(",")) if args.only else None
     ests = tuple(args.estimators.split(",")) if args.estimators else None
     res = run_suite(

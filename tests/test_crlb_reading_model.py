@@ -147,3 +147,16 @@ def test_bound_monte_carlo_runs_have_the_bounds_spread():
         assert np.mean(err[:, k] ** 2) == pytest.approx(P[k, 0, 0] + P[k, 1, 1], rel=0.1)
         assert np.mean(free[:, k] ** 2) == pytest.approx(Pf[k, 0, 0] + Pf[k, 1, 1], rel=0.1)
     assert np.mean(err[:, -1] ** 2) < 0.3 * np.mean(free[:, -1] ** 2)
+
+
+def test_suite_bounds_without_flying(capsys):
+    from magnav_ins.core.errors import ConfigError
+    from magnav_ins.studies import suite
+
+    groups, text = suite.suite_bounds(quick=True, only=("osborne_navigation",), draws=10)
+    m = groups["osborne_navigation"]
+    assert m["cases"] == 4 and set(groups) == {"osborne_navigation"}
+    assert m["free_over_crlb"] > 1.0 and 0.0 <= m["crlb_wang_mc_rate"] <= 1.0 and 0.0 <= m["crlb_wang_rate"] <= 1.0
+    assert "osborne_navigation:" in text and "free/CRLB" in text
+    with pytest.raises(ConfigError, match="unknown suite group"):
+        suite.suite_bounds(only=("osborne",))

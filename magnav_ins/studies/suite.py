@@ -321,6 +321,60 @@ def pooled_bound(bounds: list[dict[str, Any]]) -> dict[str, float]:
     }
 
 
+def suite_bounds(
+    *,
+    quick: bool = False,
+    only: tuple[str, ...] | None = None,
+    rio_survey: Path = RIO_SURVEY_DEFAULT,
+    draws: int = 200,
+    count_correlation: bool = True,
+) -> tuple[dict[str, Any], str]:
+    """The information bound of the suite's cases without flying them (:func:`case_bound` per case, ``draws`` runs
+    at the bound each): per group :func:`pooled_bound`'s keys plus ``free_over_crlb`` (the free INS's expected RMS
+    over the bound's: the most any estimator can gain), ``crlb_wang_mc_rate`` / ``free_wang_mc_rate`` (share of the
+    runs at the bound / of the free INS that Wang's test flags) and ``cases``; and a text table per case and group."""
+    wanted = tuple(GROUPS if not only else only)
+    unknown = [g for g in wanted if g not in GROUPS]
+    if unknown:
+        raise ConfigError(f"unknown suite group(s) {unknown}; expected some of {', '.join(GROUPS)}")
+    cases = [c for c in osborne_cases(quick) if c.group in wanted]
+    if "rio" in wanted:
+        cases += rio_cases(Path(rio_survey), quick)[0]
+    bounds = [case_bound(c, count_correlation, draws) for c in cases]
+    head = (
+        f"{'case':28s} {'T (s)':>6s} {'CRLB':>8s} {'free':>8s} {'free/CRLB':>9s} {'Wang(bound)':>11s} {'Wang MC':>8s}"
+    )
+    lines = [head]
+    for c, b in zip(cases, bounds, strict=True):
+        mc = f"{100 * b['crlb_wang_mc']:.0f}%" if "crlb_wang_mc" in b else "-"
+        lines.append(
+            f"{c.name:28s} {b['t'][-1] - b['t'][0]:6.0f} {b['crlb_rms']:8.1f} {b['free_rms']:8.1f} "
+            f"{b['free_rms'] / b['crlb_rms']:9.1f} {'yes' if b['crlb_wang'] else 'no':>11s} {mc:>8s}"
+        )
+    groups: dict[str, Any] = {}
+    lines += [
+        "",
+        f"{'group':28s} {'cases':>6s} {'CRLB':>8s} {'free':>8s} {'free/CRLB':>9s} {'Wang(bound)':>11s} {'Wang MC':>8s} {'free MC':>8s}",
+    ]
+    for g in wanted:
+        bs = [b for c, b in zip(cases, bounds, strict=True) if c.group == g]
+        if not bs:
+            continue
+        m = pooled_bound(bs)
+        m["free_over_crlb"] = m["crlb_free_rms_horizontal_m"] / m["crlb_rms_horizontal_m"]
+        if draws > 0:
+            m["crlb_wang_mc_rate"] = float(np.mean([b["crlb_wang_mc"] for b in bs]))
+            m["free_wang_mc_rate"] = float(np.mean([b["free_wang_mc"] for b in bs]))
+        m["cases"] = len(bs)
+        groups[g] = m
+        mc = f"{100 * m['crlb_wang_mc_rate']:7.1f}% {100 * m['free_wang_mc_rate']:7.1f}%" if draws > 0 else ""
+        lines.append(
+            f"{g:28s} {len(bs):6d} {m['crlb_rms_horizontal_m']:8.1f} {m['crlb_free_rms_horizontal_m']:8.1f} "
+            f"{m['free_over_crlb']:9.1f} {100 * m['crlb_wang_rate']:10.1f}% {mc}"
+        )
+    return groups, "\n".join(lines)
+
+
 @dataclass
 class SuiteResult:
     """``groups``: per group the pooled figures per estimator, or ``{"skipped": reason}``; ``cases``: per case
