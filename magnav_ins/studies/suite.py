@@ -30,6 +30,11 @@ Each case runs ``seeds`` Monte Carlo runs (default :data:`DEFAULT_SEEDS`), with 
 the run's seed; the runs of all cases are one study for :func:`magnav_ins.studies.runner.execute` (so ``--jobs``,
 Dask and the signal handling are the runner's), run ``i`` being case ``i // seeds``. Results are the
 ``metrics.json`` figures (:mod:`.metrics`) pooled over each group's cases and runs, plus the free-inertial RMS.
+
+Beside them, each case's information bound (:func:`case_bound`, :mod:`.crlb`): the posterior Cramér-Rao bound of the
+readings' model ``z = m(p) + c + b(p) + v`` (map error layer in the variance, readings counted by their effective
+number along its correlation length, the level ``c`` unknown), the free INS's covariance along the same flight, and
+whether Wang's test flags the bound itself; :func:`suite_bounds` gives them without flying anything.
 """
 
 from __future__ import annotations
