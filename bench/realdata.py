@@ -3,6 +3,7 @@ is flown, against which maps, with which estimators and set-up) run from the pro
 ``../shared/data`` holds the Rio survey.
 
     python bench/realdata.py --json [--quick] [--jobs 2] [--seeds N] [--only GROUP,...] [--estimators NAME,...]
+    python bench/realdata.py --bound-only DRAWS [--json] [--quick] [--only GROUP,...]   # the bound alone
 
 Prints the per-case and per-group tables (stderr with ``--json``) and, with ``--json``, one line on stdout:
 ``{"groups": {"osborne_tactical": {ESTIMATOR: {...}}, "osborne_navigation": {...}, "rio": {...}}}`` with, per
@@ -10,6 +11,12 @@ estimator, the ``metrics.json`` keys ``rms_horizontal_m``, ``nees_mean``, ``fix_
 ``divergence_rate`` (and ``nees_divergence_rate``, ``max_horizontal_m``, ``availability``, ``hpl_median_m``, ``runs``) plus
 ``free_rms_horizontal_m``, pooled over the group's cases and runs; ``wall_s`` and the job count are printed with
 the tables. The same suite: ``magnav-ins suite``.
+
+Each estimator's figures also carry the group's information bound (``magnav_ins.studies.suite.case_bound``: the
+posterior Cramér-Rao bound of the readings' model ``z = m(p) + c + b(p) + v``, about a minute for the full suite;
+``--no-bound`` skips it): ``crlb_rms_horizontal_m`` (pooled as the RMS), ``crlb_free_rms_horizontal_m`` (the free
+INS's covariance along the same flights), ``crlb_wang_rate`` (share of cases whose bound itself meets Wang's two
+conditions) and ``crlb_free_wang_rate``; the tables' ``xCRLB`` is the RMS over the bound's.
 """
 
 from __future__ import annotations
@@ -35,11 +42,34 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
     p.add_argument("--only", default=None, help="comma-separated groups to run (default all)")
     p.add_argument("--estimators", default=None, help="comma-separated estimators to fly (e.g. pmht+ukf; default all)")
+    p.add_argument("--no-bound", action="store_true", help="leave out the information bound (crlb_* keys)")
+    p.add_argument(
+        "--bound-only",
+        type=int,
+        default=None,
+        metavar="DRAWS",
+        help="fly nothing: the bound per case and group, with DRAWS runs at the bound each for Wang's test",
+    )
     args = p.parse_args(argv)
+    if args.bound_only is not None:
+        from magnav_ins.studies.suite import suite_bounds
+
+        only = tuple(args.only.split(",")) if args.only else None
+        groups, text = suite_bounds(quick=args.quick, only=only, rio_survey=RIO_SURVEY, draws=args.bound_only)
+        print(text, file=sys.stderr if args.json else sys.stdout)
+        if args.json:
+            print(json.dumps({"bounds": groups}, allow_nan=False))
+        return 0
     only = tuple(args.only.split(",")) if args.only else None
     ests = tuple(args.estimators.split(",")) if args.estimators else None
     res = run_suite(
-        quick=args.quick, seeds=args.seeds, jobs=args.jobs, only=only, rio_survey=RIO_SURVEY, estimators=ests
+        quick=args.quick,
+        seeds=args.seeds,
+        jobs=args.jobs,
+        only=only,
+        rio_survey=RIO_SURVEY,
+        estimators=ests,
+        bound=not args.no_bound,
     )
     text = report(res) + f" with {args.jobs} jobs"
     print(text, file=sys.stderr if args.json else sys.stdout)

@@ -209,20 +209,39 @@ def gradient_rms(fmap: GridMap, window_m: float) -> GridMap:
 
 
 # ---------------------------------------------------------------------------------------------- Cramér-Rao bound
-def fisher_information_ne(grad_ne: ArrayLike, sigma: float | ArrayLike) -> FloatArray:
+def fisher_information_ne(
+    grad_ne: ArrayLike, sigma: float | ArrayLike, weight: float | ArrayLike = 1.0, level: bool = False
+) -> FloatArray:
     """Fisher information (m^-2, (..., 2, 2)) about horizontal position of one reading with gradient ``grad_ne``
-    ((..., 2) scalar or (..., 3, 2) vector, unit/m) and noise ``sigma`` (unit): ``G^T G / sigma^2``."""
+    ((..., 2) scalar or (..., 3, 2) vector, unit/m) and noise ``sigma`` (unit, per reading or one value):
+    ``w G^T G / sigma^2``.
+
+    ``weight`` ``w`` (per reading or one value, in [0, 1]) is the share of a reading that is independent evidence
+    (e.g. ``min(1, ds / ell)`` for readings ``ds`` apart whose errors are correlated over ``ell``: an
+    effective-number approximation of a correlated error, not its exact information). ``level``: the reading also
+    carries an unknown additive level per component (``z = m(p) + c + v``), and the information is about
+    ``(north, east, c)`` ((..., 3, 3) for a scalar reading, (..., 5, 5) for a vector one: ``H = [G, I]``)."""
     g = np.asarray(grad_ne, float)
     if g.shape[-1] != 2:
         raise InputError(f"grad_ne: expected a trailing axis of 2 (north, east), got shape {g.shape}")
     s2 = np.asarray(sigma, float) ** 2
     if np.any(s2 <= 0):
         raise InputError(f"sigma: expected > 0, got {sigma!r}")
-    if g.ndim >= 2 and g.shape[-2] == 3:
+    w = np.asarray(weight, float)
+    if np.any(~(w >= 0)) or np.any(w > 1):
+        raise InputError(f"weight: expected values in [0, 1], got {weight!r}")
+    vector = g.ndim >= 2 and g.shape[-2] == 3
+    if level:  # the level's column of H: 1 per component
+        gv = g if vector else g[..., None, :]
+        eye = np.broadcast_to(np.eye(gv.shape[-2]), gv.shape[:-1] + (gv.shape[-2],))
+        h = np.concatenate([gv, eye], axis=-1)
+        j = np.einsum("...ci,...cj->...ij", h, h)
+    elif vector:
         j = np.einsum("...ci,...cj->...ij", g, g)
     else:
         j = g[..., :, None] * g[..., None, :]
-    return j / np.reshape(s2, np.shape(s2) + (1, 1))
+    scale = w / s2
+    return j * np.reshape(scale, np.shape(scale) + (1, 1))
 
 
 def _eig2(j: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -365,7 +384,8 @@ def posterior_crlb(
         if np.any(J[k]):
             free = [i for i in range(P.shape[0]) if i not in hold]
             Pf = P[np.ix_(free, free)]
-            Pf = np.linalg.inv(np.linalg.inv(Pf) + J[k][np.ix_(free, free)])
+            # (P^-1 + J)^-1 = (I + P J)^-1 P: no inverse of P (badly conditioned with a level or bias states)
+            Pf = np.linalg.solve(np.eye(len(free)) + Pf @ J[k][np.ix_(free, free)], Pf)
             P[np.ix_(free, free)] = 0.5 * (Pf + Pf.T)
         out[k + 1] = P
     return out

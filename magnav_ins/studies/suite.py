@@ -30,6 +30,11 @@ Each case runs ``seeds`` Monte Carlo runs (default :data:`DEFAULT_SEEDS`), with 
 the run's seed; the runs of all cases are one study for :func:`magnav_ins.studies.runner.execute` (so ``--jobs``,
 Dask and the signal handling are the runner's), run ``i`` being case ``i // seeds``. Results are the
 ``metrics.json`` figures (:mod:`.metrics`) pooled over each group's cases and runs, plus the free-inertial RMS.
+
+Beside them, each case's information bound (:func:`case_bound`, :mod:`.crlb`): the posterior Cramér-Rao bound of the
+readings' model ``z = m(p) + c + b(p) + v`` (map error layer in the variance, readings counted by their effective
+number along its correlation length, the level ``c`` unknown), the free INS's covariance along the same flight, and
+whether Wang's test flags the bound itself; :func:`suite_bounds` gives them without flying anything.
 """
 
 from __future__ import annotations
@@ -240,6 +245,141 @@ def pooled(
     return out
 
 
+# ------------------------------------------------------------------------------------------------ the bound
+def case_bound(case: Case, count_correlation: bool = True, draws: int = 0) -> dict[str, Any]:
+    """The information bound of one case (:func:`magnav_ins.studies.crlb.flight_crlb` with the suite's reading
+    model ``z = m(p) + c + b(p) + v``: the map's error layer at the true position added to the 1 nT sensor variance,
+    readings weighed by ``min(1, ds / ell)``, the level ``c`` a state with the matchers' prior), next to the free
+    INS's covariance along the same steps, both on the run's output samples (:data:`OUTPUT_SAMPLES`).
+
+    Returns ``t`` (s), ``crlb`` and ``free`` (``sqrt(P_NN + P_EE)``, m, per sample), ``crlb_rms`` / ``free_rms``
+    (RMS over the samples, m), the quarter means ``crlb_q2``, ``crlb_q4``, ``free_q2``, ``free_q4`` (m) and
+    ``crlb_wang`` / ``free_wang``: whether Wang's two conditions (:func:`magnav_ins.studies.metrics.is_divergent`)
+    hold for an error following the bound (or the free covariance, tested against itself). ``count_correlation``:
+    False counts every reading as independent (no correlation weighting; a still lower bound). ``draws`` > 0 adds
+    ``crlb_wang_mc`` and ``free_wang_mc``: the share of that many runs of the estimator attaining the bound
+    (:func:`magnav_ins.studies.crlb.bound_monte_carlo`, seeded from the case name) that Wang's test flags against
+    the free INS of the same draw, and of the free INS against itself."""
+    from ..aiding.matchers.map_error import resolve_level, resolve_map_error
+    from . import metrics as M
+    from .crlb import flight_crlb
+    from .model import PipelineModel, output_dt
+
+    model = PipelineModel(case.scenario(ESTIMATORS[:1]), max_samples=OUTPUT_SAMPLES)
+    sc, sh = model.scenario, model.shared()
+    truth, fmap = sh["truth"], sh["map"]
+    dt_out = output_dt(sc, truth, OUTPUT_SAMPLES)
+    sel = np.unique(
+        np.append(np.searchsorted(truth.t, np.arange(truth.t[0], truth.t[-1] + 1e-9, dt_out) - 1e-6), len(truth.t) - 1)
+    )  # the samples of PipelineModel.run
+    t_out = truth.t[sel]
+    me = resolve_map_error(fmap)
+    te, b = flight_crlb(
+        sc, truth, sh["imu"], fmap, map_error=me, level_sigma=resolve_level(fmap).sigma,
+        count_correlation=count_correlation,
+    )  # fmt: skip
+    _, f = flight_crlb(sc, truth, sh["imu"], fmap, readings=False)
+    crlb = np.sqrt(np.interp(t_out, te, b**2))
+    free = np.sqrt(np.interp(t_out, te, f**2))
+    qb, qf = M.quarter_means(crlb), M.quarter_means(free)
+    mc: dict[str, float] = {}
+    if draws > 0:
+        from .crlb import bound_monte_carlo, flight_system
+
+        _, P0, Phi, Q, J = flight_system(
+            sc, truth, sh["imu"], fmap, map_error=me, level_sigma=resolve_level(fmap).sigma,
+            count_correlation=count_correlation,
+        )  # fmt: skip
+        err, fre = bound_monte_carlo(P0, Phi, Q, J, draws, np.random.default_rng(zlib.crc32(case.name.encode())))
+        at = np.clip(np.searchsorted(te, t_out - 1e-6), 0, len(te) - 1)  # the step end at (or just after) a sample
+        mc = {
+            "crlb_wang_mc": float(np.mean([M.is_divergent(a[at], z[at]) for a, z in zip(err, fre, strict=True)])),
+            "free_wang_mc": float(np.mean([M.is_divergent(z[at], z[at]) for z in fre])),
+        }
+    return {
+        **mc,
+        "t": t_out,
+        "crlb": crlb,
+        "free": free,
+        "crlb_rms": float(np.sqrt(np.mean(crlb**2))),
+        "free_rms": float(np.sqrt(np.mean(free**2))),
+        "crlb_q2": float(qb[1]),
+        "crlb_q4": float(qb[3]),
+        "free_q2": float(qf[1]),
+        "free_q4": float(qf[3]),
+        "crlb_wang": M.is_divergent(crlb, free),
+        "free_wang": M.is_divergent(free, free),
+    }
+
+
+def pooled_bound(bounds: list[dict[str, Any]]) -> dict[str, float]:
+    """A group's bound figures from :func:`case_bound` results, pooled as the suite pools the RMS (every case has
+    the same runs and samples): ``crlb_rms_horizontal_m`` and ``crlb_free_rms_horizontal_m`` (the free INS's
+    expected RMS from its covariance), m; ``crlb_wang_rate`` and ``crlb_free_wang_rate`` (share of cases)."""
+    if not bounds:
+        return {}
+    return {
+        "crlb_rms_horizontal_m": float(np.sqrt(np.mean([np.mean(b["crlb"] ** 2) for b in bounds]))),
+        "crlb_free_rms_horizontal_m": float(np.sqrt(np.mean([np.mean(b["free"] ** 2) for b in bounds]))),
+        "crlb_wang_rate": float(np.mean([b["crlb_wang"] for b in bounds])),
+        "crlb_free_wang_rate": float(np.mean([b["free_wang"] for b in bounds])),
+    }
+
+
+def suite_bounds(
+    *,
+    quick: bool = False,
+    only: tuple[str, ...] | None = None,
+    rio_survey: Path = RIO_SURVEY_DEFAULT,
+    draws: int = 200,
+    count_correlation: bool = True,
+) -> tuple[dict[str, Any], str]:
+    """The information bound of the suite's cases without flying them (:func:`case_bound` per case, ``draws`` runs
+    at the bound each): per group :func:`pooled_bound`'s keys plus ``free_over_crlb`` (the free INS's expected RMS
+    over the bound's: the most any estimator can gain), ``crlb_wang_mc_rate`` / ``free_wang_mc_rate`` (share of the
+    runs at the bound / of the free INS that Wang's test flags) and ``cases``; and a text table per case and group."""
+    wanted = tuple(GROUPS if not only else only)
+    unknown = [g for g in wanted if g not in GROUPS]
+    if unknown:
+        raise ConfigError(f"unknown suite group(s) {unknown}; expected some of {', '.join(GROUPS)}")
+    cases = [c for c in osborne_cases(quick) if c.group in wanted]
+    if "rio" in wanted:
+        cases += rio_cases(Path(rio_survey), quick)[0]
+    bounds = [case_bound(c, count_correlation, draws) for c in cases]
+    head = (
+        f"{'case':28s} {'T (s)':>6s} {'CRLB':>8s} {'free':>8s} {'free/CRLB':>9s} {'Wang(bound)':>11s} {'Wang MC':>8s}"
+    )
+    lines = [head]
+    for c, b in zip(cases, bounds, strict=True):
+        mc = f"{100 * b['crlb_wang_mc']:.0f}%" if "crlb_wang_mc" in b else "-"
+        lines.append(
+            f"{c.name:28s} {b['t'][-1] - b['t'][0]:6.0f} {b['crlb_rms']:8.1f} {b['free_rms']:8.1f} "
+            f"{b['free_rms'] / b['crlb_rms']:9.1f} {'yes' if b['crlb_wang'] else 'no':>11s} {mc:>8s}"
+        )
+    groups: dict[str, Any] = {}
+    lines += [
+        "",
+        f"{'group':28s} {'cases':>6s} {'CRLB':>8s} {'free':>8s} {'free/CRLB':>9s} {'Wang(bound)':>11s} {'Wang MC':>8s} {'free MC':>8s}",
+    ]
+    for g in wanted:
+        bs = [b for c, b in zip(cases, bounds, strict=True) if c.group == g]
+        if not bs:
+            continue
+        m = pooled_bound(bs)
+        m["free_over_crlb"] = m["crlb_free_rms_horizontal_m"] / m["crlb_rms_horizontal_m"]
+        if draws > 0:
+            m["crlb_wang_mc_rate"] = float(np.mean([b["crlb_wang_mc"] for b in bs]))
+            m["free_wang_mc_rate"] = float(np.mean([b["free_wang_mc"] for b in bs]))
+        m["cases"] = len(bs)
+        groups[g] = m
+        mc = f"{100 * m['crlb_wang_mc_rate']:7.1f}% {100 * m['free_wang_mc_rate']:7.1f}%" if draws > 0 else ""
+        lines.append(
+            f"{g:28s} {len(bs):6d} {m['crlb_rms_horizontal_m']:8.1f} {m['crlb_free_rms_horizontal_m']:8.1f} "
+            f"{m['free_over_crlb']:9.1f} {100 * m['crlb_wang_rate']:10.1f}% {mc}"
+        )
+    return groups, "\n".join(lines)
+
+
 @dataclass
 class SuiteResult:
     """``groups``: per group the pooled figures per estimator, or ``{"skipped": reason}``; ``cases``: per case
@@ -262,10 +402,13 @@ def run_suite(
     quiet: bool = True,
     estimators: tuple[str, ...] | None = None,
     cases: list[Case] | None = None,
+    bound: bool = True,
 ) -> SuiteResult:
     """Run the suite (module docstring); ``only`` limits it to some groups, ``estimators`` to some of
     :data:`ESTIMATORS` (by name; the others are not flown, their settings unchanged); ``cases`` replaces the
-    suite's own cases (e.g. those used for no choice, as the README's verification table)."""
+    suite's own cases (e.g. those used for no choice, as the README's verification table). ``bound``: add each
+    case's information bound (:func:`case_bound`, a fraction of a second per case) to every estimator's figures
+    (:func:`pooled_bound`'s keys, ``crlb_rms_horizontal_m`` among them)."""
     if seeds < 1:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
     known = [e["name"] for e in ESTIMATORS]
@@ -301,10 +444,18 @@ def run_suite(
     per_case = [
         (c, pooled(summaries[k * seeds : (k + 1) * seeds], ests)) for k, c in enumerate(cases)
     ]  # runs are returned in order
+    bounds = [case_bound(c) for c in cases] if bound else []
+    for (_, figs), b in zip(per_case, bounds, strict=False):
+        for m in figs.values():
+            m.update(pooled_bound([b]))
     groups: dict[str, Any] = {}
     for g in GROUPS:
         runs = [s for k, c in enumerate(cases) if c.group == g for s in summaries[k * seeds : (k + 1) * seeds]]
         groups[g] = pooled(runs, ests) if runs else {"skipped": skipped.get(g, "no case")}
+        if runs and bounds:  # the information bound of the group's cases, beside each estimator's RMS
+            gb = pooled_bound([b for b, c in zip(bounds, cases, strict=True) if c.group == g])
+            for m in groups[g].values():
+                m.update(gb)
     return SuiteResult(groups, per_case, time.perf_counter() - t0, len(summaries))
 
 
@@ -319,19 +470,26 @@ def _fmt(x: Any, pct: bool = False) -> str:
 
 TABLE_HEADER = (
     f"{'case':28s} {'estimator':17s} {'RMS':>8s} {'medRMS':>8s} {'max':>8s} {'NEES':>7s} {'fixNEES':>8s} {'HPLexc':>7s} "
-    f"{'avail':>6s} {'div':>6s} {'divNEES':>7s} {'free':>8s}"
+    f"{'avail':>6s} {'div':>6s} {'divNEES':>7s} {'free':>8s} {'xCRLB':>6s}"
 )
+
+
+def _x_crlb(m: dict[str, Any]) -> str:
+    """The estimator's RMS in units of the information bound's (``-`` without the bound)."""
+    b = m.get("crlb_rms_horizontal_m")
+    return "-" if not b or m.get("rms_horizontal_m") is None else f"{float(m['rms_horizontal_m']) / b:.1f}"
 
 
 def table_rows(name: str, figures: dict[str, dict[str, Any]]) -> list[str]:
     """Text rows of one case or group: RMS, median run RMS, max, NEES, fix NEES, HPL exceedance, availability,
-    divergence (Wang's error-growth test and the filter's NEES test, :mod:`.metrics`), free RMS per estimator."""
+    divergence (Wang's error-growth test and the filter's NEES test, :mod:`.metrics`), free RMS per estimator, and
+    the RMS in units of the information bound's (``xCRLB``, :func:`case_bound`)."""
     return [
         f"{name:28s} {est:17s} {_fmt(m['rms_horizontal_m']):>8s} "
         f"{_fmt(m.get('median_run_rms_horizontal_m')):>8s} {_fmt(m['max_horizontal_m']):>8s} "
         f"{_fmt(m['nees_mean']):>7s} {_fmt(m['fix_nees_mean']):>8s} {_fmt(m['hpl_exceedance'], True):>7s} "
         f"{_fmt(m['availability'], True):>6s} {_fmt(m['divergence_rate'], True):>6s} "
-        f"{_fmt(m['nees_divergence_rate'], True):>7s} {_fmt(m['free_rms_horizontal_m']):>8s}"
+        f"{_fmt(m['nees_divergence_rate'], True):>7s} {_fmt(m['free_rms_horizontal_m']):>8s} {_x_crlb(m):>6s}"
         for est, m in figures.items()
     ]
 
