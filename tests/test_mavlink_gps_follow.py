@@ -21,7 +21,7 @@ import pytest
 from test_mavlink_bridge_states import ARDUPILOT, LAT, LON, Heartbeat, _at_rest, _bridge
 
 from magnav_ins.core.types import NavEstimate, NavState
-from magnav_ins.mavlink.bridge import BridgeConfig
+from magnav_ins.mavlink.bridge import MAX_SPEED_FLOOR_MPS, BridgeConfig
 
 #: EKF3 copter defaults: EK3_VELNE_M_NSE, EK3_POSNE_M_NSE (m/s, m), EK3_ACC_P_NSE (m/s^2), its prediction step (s)
 VELNE_NSE, POSNE_NSE, ACC_P_NSE, EKF_DT = 0.3, 0.5, 0.35, 0.012
@@ -71,13 +71,14 @@ def test_ekf3_takes_up_a_position_step_in_sigma_h_over_speed_accuracy(sigma_h):
     assert t63_own >= 0.75 * sigma_h / 0.3, t63_own
 
 
-def test_the_bridges_floor_makes_ekf3_follow_within_follow_s_without_a_velocity_jolt():
-    """At sigma_h 40 m: the filter's 0.35 m/s -> 100+ s; the floor (20 s) -> about 20 s, and a one-sigma correction
-    moves EKF3's velocity by less than 0.5 m/s, inside its velocity gate (5 x 0.3 m/s) with room to spare."""
-    slow, _ = ekf3_follow(40.0, 0.35, 40.0)
-    fast, vmax = ekf3_follow(40.0, 40.0 / BridgeConfig().follow_s, 40.0)
-    assert slow > 90.0, slow
-    assert fast < 25.0, fast
+@pytest.mark.parametrize(("sigma_h", "fast_s"), [(20.0, 25.0), (40.0, 40.0), (80.0, 80.0)])
+def test_the_bridges_floor_makes_ekf3_follow_sooner_without_a_velocity_jolt(sigma_h, fast_s):
+    """The filter's 0.35 m/s -> 50-300 s; the floor (20 s, at most 1.2 m/s) -> 3-4 times sooner, and a one-sigma
+    correction moves EKF3's velocity by less than 0.5 m/s, inside its velocity gate (5 x 0.3 m/s)."""
+    slow, _ = ekf3_follow(sigma_h, 0.35, sigma_h)
+    sent = min(sigma_h / BridgeConfig().follow_s, MAX_SPEED_FLOOR_MPS)
+    fast, vmax = ekf3_follow(sigma_h, sent, sigma_h)
+    assert fast < fast_s and fast < slow / 2.5, (slow, fast)
     assert vmax < 0.5, vmax
 
 
@@ -112,7 +113,9 @@ def _run(config: BridgeConfig, sigma_h: float, sigma_v: float, hpl: float = math
 
 
 @pytest.mark.parametrize(("sigma_h", "sigma_v", "follow_s", "expected"), [
-    (40.0, 0.35, 20.0, 2.0),  # the floor
+    (20.0, 0.35, 20.0, 1.0),  # the floor
+    (40.0, 0.35, 20.0, 1.2),  # the floor, capped under EKF3's GPS-glitch threshold
+    (40.0, 2.0, 20.0, 2.0),  # the filter's own when larger
     (2.0, 0.35, 20.0, 0.35),  # GNSS-aided: the filter's own
     (40.0, 0.35, 1e6, 0.35),  # no floor
 ])  # fmt: skip

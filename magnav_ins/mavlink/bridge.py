@@ -92,6 +92,10 @@ from .online import AUTO_SAMPLE_TYPE, MAX_GAP_S
 log = logging.getLogger(__name__)
 
 OUTPUT_KINDS = ("gps_input", "odometry", "global_position_sensor")
+
+#: the largest speed accuracy the ``follow_s`` floor raises GPS_INPUT's to, m/s: under EKF3's 1.5 m/s "GPS
+#: glitching" threshold (:meth:`Bridge._speed_accuracy`); the filter's own velocity sigma is sent as it is
+MAX_SPEED_FLOOR_MPS = 1.2
 SAMPLE_TYPE_CHOICES = ("auto", *SAMPLE_TYPES)
 SEND_WHILE_GNSS = ("auto", "yes", "no")
 IMU_WORLDS = ("earth", "flat")
@@ -1144,8 +1148,11 @@ class Bridge:
         took 100-200 s to take up a fix, so on SITL run 29 it flew 28.8 m RMS off the truth while the bridge it
         followed was 22 m off (its model replays the recorded EKF within 6 m RMS). A larger speed accuracy says less
         than the bridge knows, never more; with ``follow_s`` = 20 s a correction of one sigma moves EKF3's velocity
-        by at most 0.4 m/s (its velocity gate is 5 x 0.3 m/s)."""
-        return max(s.sigma_speed, s.sigma_h / self.config.follow_s)
+        by at most 0.4 m/s (its velocity gate is 5 x 0.3 m/s). The floor stops at :data:`MAX_SPEED_FLOOR_MPS`:
+        EKF3 flags "GPS glitching" (Copter: "GPS Glitch or Compass error", run 31) while the speed accuracy it
+        is sent, low-passed and peak-held, is above 1.5 m/s (``calcGpsGoodForFlight``); above 24 m of sigma the
+        time constant is then ``sigma_h / 1.2 m/s`` (33 s at 40 m, still 3-4 times shorter than before)."""
+        return max(s.sigma_speed, min(s.sigma_h / self.config.follow_s, MAX_SPEED_FLOOR_MPS))
 
     def _send_while_gnss(self) -> bool:
         c = self.config
