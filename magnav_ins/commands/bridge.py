@@ -77,6 +77,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="do not send positions whose protection level exceeds this, m (fusers with integrity; default "
         "5 x --max-sigma)",
     )
+    p.add_argument(
+        "--follow-s",
+        type=float,
+        default=20.0,
+        help="GPS_INPUT speed accuracy at least the horizontal sigma / this, s (default 20): EKF3 then takes up a "
+        "map fix's position correction in about this time instead of minutes",
+    )
     p.add_argument("--gps-id", type=int, default=0, help="GPS_INPUT instance: 0 = GPS1 (default), 1 = GPS2")
     p.add_argument(
         "--no-gnss-aiding", action="store_true", help="do not fuse the autopilot's own GNSS (GPS_RAW_INT / GPS2_RAW)"
@@ -266,6 +273,7 @@ def run(args: argparse.Namespace) -> int:
         reading_interval_s=args.reading_interval,
         max_sigma_m=args.max_sigma,
         alert_limit_m=args.alert_limit,
+        follow_s=args.follow_s,
         geoid_height_m=args.geoid_height,
         sample_type=args.sample_type,
         gps_id=args.gps_id,

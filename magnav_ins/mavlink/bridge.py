@@ -92,6 +92,10 @@ from .online import AUTO_SAMPLE_TYPE, MAX_GAP_S
 log = logging.getLogger(__name__)
 
 OUTPUT_KINDS = ("gps_input", "odometry", "global_position_sensor")
+
+#: the largest speed accuracy the ``follow_s`` floor raises GPS_INPUT's to, m/s: under EKF3's 1.5 m/s "GPS
+#: glitching" threshold (:meth:`Bridge._speed_accuracy`); the filter's own velocity sigma is sent as it is
+MAX_SPEED_FLOOR_MPS = 1.2
 SAMPLE_TYPE_CHOICES = ("auto", *SAMPLE_TYPES)
 SEND_WHILE_GNSS = ("auto", "yes", "no")
 IMU_WORLDS = ("earth", "flat")
@@ -147,6 +151,7 @@ class BridgeConfig:
     max_sigma_m: float = 100.0
     alert_limit_m: float | None = None  # HPL limit; default max_sigma_m * HPL_PER_SIGMA
     trust_hysteresis: float = 0.8
+    follow_s: float = 20.0  # GPS_INPUT speed accuracy >= horizontal sigma / follow_s (:meth:`Bridge._speed_accuracy`)
     max_gap_s: float = MAX_GAP_S
     reboot_backstep_s: float = 1.0
     stale_imu_s: float = 0.5
@@ -210,7 +215,7 @@ class BridgeConfig:
             raise ConfigError(f"--deny-gnss-after {self.deny_gnss_after_s}: expected seconds >= 0")
         if not (math.isfinite(self.gnss_lag_s) and 0.0 <= self.gnss_lag_s <= 1.0):
             raise ConfigError(f"--gnss-lag {self.gnss_lag_s}: expected 0-1 s")
-        for name in ("init_sigma_m", "max_sigma_m", "gnss_max_sigma_m", "gnss_fix_interval_s"):
+        for name in ("init_sigma_m", "max_sigma_m", "gnss_max_sigma_m", "gnss_fix_interval_s", "follow_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"bridge setting {name} = {v!r}: expected a positive number")
@@ -1125,12 +1130,29 @@ class Bridge:
         if not s.finite:
             return False, "not finite"
         scale = 1.0 if self._sigma_ok else c.trust_hysteresis
-        if math.isfinite(s.hpl_m):
+        # the sigma limit always (EKF3 takes at most 100 m of accuracy: a larger sigma sent would be read as smaller),
+        # the protection level's on top where the fuser computes one
+        ok, why = s.sigma_h <= scale * c.max_sigma_m, "sigma above limit"
+        if ok and math.isfinite(s.hpl_m):
             ok, why = s.hpl_m <= scale * c.alert_limit, "HPL above limit"
-        else:
-            ok, why = s.sigma_h <= scale * c.max_sigma_m, "sigma above limit"
         self._sigma_ok = ok
         return (True, "") if ok else (False, why)
+
+    def _speed_accuracy(self, s: _Solution) -> float:
+        """The speed accuracy GPS_INPUT carries, m/s: the filter's velocity sigma, but at least ``sigma_h /
+        follow_s``. A consumer that fuses position (variance ``sigma_h^2``) and velocity (``sigma_v^2``) as white
+        measurements at one rate, as EKF3 does GPS_INPUT, takes up a change of the position with a time constant
+        of about ``sigma_h / sigma_v`` (``tests/test_mavlink_gps_follow.py``). The bridge's velocity does not carry
+        its map fixes' position corrections (they are steps of its position), and its position and velocity errors
+        are not white but slow: at the filter's own ``sigma_v`` (0.05-0.6 m/s while ``sigma_h`` was 10-80 m) EKF3
+        took 100-200 s to take up a fix, so on SITL run 29 it flew 28.8 m RMS off the truth while the bridge it
+        followed was 22 m off (its model replays the recorded EKF within 6 m RMS). A larger speed accuracy says less
+        than the bridge knows, never more; with ``follow_s`` = 20 s a correction of one sigma moves EKF3's velocity
+        by at most 0.4 m/s (its velocity gate is 5 x 0.3 m/s). The floor stops at :data:`MAX_SPEED_FLOOR_MPS`:
+        EKF3 flags "GPS glitching" (Copter: "GPS Glitch or Compass error", run 31) while the speed accuracy it
+        is sent, low-passed and peak-held, is above 1.5 m/s (``calcGpsGoodForFlight``); above 24 m of sigma the
+        time constant is then ``sigma_h / 1.2 m/s`` (33 s at 40 m, still 3-4 times shorter than before)."""
+        return max(s.sigma_speed, min(s.sigma_h / self.config.follow_s, MAX_SPEED_FLOOR_MPS))
 
     def _send_while_gnss(self) -> bool:
         c = self.config
@@ -1175,7 +1197,8 @@ class Bridge:
             ignore = 0 if (self._baro is not None and self.health.baro_state == "active") else GPS_INPUT_IGNORE_VEL_VERT
             self.link.send_gps_input(
                 t_unix=self._wall(), lat=s.lat, lon=s.lon, h_msl=h_msl, v_n=s.v_n, sigma_h=s.sigma_h,
-                sigma_v=s.sigma_v, sigma_speed=s.sigma_speed, healthy=trusted, gps_id=c.gps_id, ignore_flags=ignore,
+                sigma_v=s.sigma_v, sigma_speed=self._speed_accuracy(s), healthy=trusted, gps_id=c.gps_id,
+                ignore_flags=ignore,
             )  # fmt: skip
         elif c.output == "odometry":
             if not trusted or self._origin is None:
