@@ -69,39 +69,11 @@ from .integrity import (
 FloatArray = np.ndarray
 _TIME_TOL = 1e-9
 _RW_FLOOR = 1e-12  # bias random walk for random-constant biases (keeps the factor's covariance regular)
-_VAR_FLOOR = 1e-20  # variance given to a state the prior holds exactly (an ideal IMU's zero bias sigma), SI units^2
 
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     """``a x b`` of two 3-vectors (numpy's general ``cross`` costs ~40 us a call: most of the per-sample time)."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-def _sqrt_information(P: FloatArray) -> FloatArray:
-    """A square root ``U`` of the information ``P^-1`` (``U^T U = P^-1``) of a covariance whose
-    variances span ~25 orders of magnitude (km^2 positions, ~5e-17 rad^2/s^2 navigation-grade gyro biases).
-
-    Works on the correlation matrix ``C = D^-1 P D^-1`` (``D`` the standard deviations), whose eigenvalues are
-    clipped at 1e-12 (PD) without touching the small states, then ``U = chol(C^-1)^T D^-1``. A state with a
-    non-positive variance (held exactly) gets ``_VAR_FLOOR``. An absolute eigenvalue floor on ``P`` itself (1e-12
-    before) raised the navigation grade's 0.0015 deg/h gyro-bias sigma to 1e-6 rad/s = 0.21 deg/h, letting the graph
-    fit a 1.3 deg/h gyro bias on the Osborne tie-line flight."""
-    P = 0.5 * (np.asarray(P, float) + np.asarray(P, float).T)
-    d = np.diag(P).copy()
-    held = ~(d > 0)
-    if held.any():
-        P = P.copy()
-        P[held, :] = 0.0
-        P[:, held] = 0.0
-        P[held, held] = _VAR_FLOOR
-        d = np.diag(P).copy()
-    sd = np.sqrt(d)
-    C = P / np.outer(sd, sd)
-    w, Vec = np.linalg.eigh(0.5 * (C + C.T))
-    w = np.maximum(w, 1e-12)
-    Cinv = (Vec / w) @ Vec.T
-    L = np.linalg.cholesky(0.5 * (Cinv + Cinv.T))
-    return L.T / sd[None, :]
 
 
 @dataclass
@@ -208,14 +180,14 @@ class GraphFuser:
         b_a = init.bias_a if hasattr(init, "bias_a") else np.zeros(3)
         b_g = init.bias_g if hasattr(init, "bias_g") else np.zeros(3)
         bias0 = gtsam.imuBias.ConstantBias(np.asarray(b_a, float), np.asarray(b_g, float))
-        Pl = self._layout_to_gtsam_cov(P0[:15, :15], state0)
+        Pl = self._layout_to_gtsam_cov(symmetrise(P0[:15, :15], 1e-12), state0)
         values = gtsam.Values()
         values.insert(X(0), state0.pose())
         values.insert(V(0), state0.velocity())
         values.insert(B(0), bias0)
         # one joint Gaussian prior on (X0, V0, B0) that keeps the cross-covariances of the initial P: the whitened
         # linear factor ||U dx||^2 with U^T U = Pl^-1, held at the initial values (LinearContainerFactor)
-        U = _sqrt_information(Pl)
+        U = np.linalg.cholesky(np.linalg.inv(Pl)).T
         prior = gtsam.JacobianFactor(X(0), U[:, 0:6], V(0), U[:, 6:9], B(0), U[:, 9:15], np.zeros(15),
                                      gtsam.noiseModel.Unit.Create(15))  # fmt: skip
         graph = gtsam.NonlinearFactorGraph()
@@ -270,7 +242,7 @@ class GraphFuser:
     def _layout_to_gtsam_cov(self, P15: FloatArray, s: gtsam.NavState) -> FloatArray:
         J = self._J_gtsam_to_layout(s)
         Ji = np.linalg.inv(J)
-        return symmetrise(Ji @ np.asarray(P15, float) @ Ji.T)
+        return symmetrise(Ji @ P15 @ Ji.T, 1e-14)
 
     # --------------------------------------------------------------------------------------------- helpers
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
@@ -481,7 +453,7 @@ class GraphFuser:
         values.insert(X(k), state.pose())
         values.insert(V(k), state.velocity())
         values.insert(B(k), bias)
-        U = _sqrt_information(P_g)
+        U = np.linalg.cholesky(np.linalg.inv(symmetrise(P_g, 1e-14))).T
         lin = gtsam.JacobianFactor(X(k), U[:, 0:6], V(k), U[:, 6:9], B(k), U[:, 9:15], np.zeros(15),
                                    gtsam.noiseModel.Unit.Create(15))  # fmt: skip
         return gtsam.LinearContainerFactor(lin, values)
