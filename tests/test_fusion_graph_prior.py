@@ -1,7 +1,13 @@
-"""The graph fuser's prior on node 0 must be the initial covariance itself: its variances span ~25 orders of
-magnitude (km^2 positions, ~5e-17 rad^2/s^2 for a navigation-grade gyro bias), so an absolute eigenvalue floor on the
-covariance (1e-12 before) silently widened the gyro-bias sigma from 0.0015 deg/h to 0.21 deg/h, and the graph then
-fitted a 1.3 deg/h gyro bias on the Osborne tie-line study."""
+"""The graph fuser's prior on node 0 should be the initial covariance itself. Its variances span ~25 orders of
+magnitude (km^2 positions, ~5e-17 rad^2/s^2 for a navigation-grade gyro bias), and the absolute 1e-12 eigenvalue floor
+in ``GraphFuser.__init__`` widens the gyro-bias sigma from 0.0015 deg/h to 0.21 deg/h (1e-6 rad/s): the graph fits a
+1.3 deg/h gyro bias on run 6 of the Osborne eight-line study (true ~0.003 deg/h).
+
+KNOWN DEFECT (issue 13), hence the strict xfails: removing the floor (correlation-scaled square-root information)
+made the 20-run study worse (ml+graph 186 -> 307 m RMS, NEES 3.0 -> 8.6): in SI units the navigation grade's
+gyro-bias prior (7e-9 rad/s) and random walk (1.7e-10 rad/s/sqrt(s)) leave each 20 s CombinedImuFactor covariance with
+condition number 2.8e14 and the full system indeterminate under Cholesky, so the floor is, by accident, what keeps the
+graph numerically sane. The fix needs the bias states rescaled (or conditioned) before the floor can go."""
 
 from __future__ import annotations
 
@@ -25,7 +31,13 @@ def _prior(grade_name: str) -> tuple[NavEstimate, ImuNoise]:
     return NavEstimate(nav0, P0), ImuNoise.from_grade(grade)
 
 
-@pytest.mark.parametrize("grade_name", ["navigation", "tactical", "consumer"])
+_FLOOR = "issue 13: the 1e-12 eigenvalue floor widens sub-1e-6 bias sigmas (module docstring)"
+
+
+@pytest.mark.parametrize(
+    "grade_name",
+    [pytest.param("navigation", marks=pytest.mark.xfail(strict=True, reason=_FLOOR)), "tactical", "consumer"],
+)
 def test_node0_marginal_is_the_initial_covariance(grade_name: str) -> None:
     """Every 1-sigma of the node-0 marginal (LAYOUT_15) equals the initial one within 1 %, the smallest (gyro bias)
     included."""
@@ -36,6 +48,7 @@ def test_node0_marginal_is_the_initial_covariance(grade_name: str) -> None:
     np.testing.assert_allclose(sig, sig0, rtol=1e-2)
 
 
+@pytest.mark.xfail(strict=True, reason=_FLOOR)
 def test_ideal_imu_prior_holds_the_zero_biases() -> None:
     """A grade with zero bias sigmas (an ideal IMU) still builds, with the biases held to ~1e-10."""
     init, noise = _prior("navigation")
