@@ -3,11 +3,11 @@ magnitude (km^2 positions, ~5e-17 rad^2/s^2 for a navigation-grade gyro bias), a
 in ``GraphFuser.__init__`` widens the gyro-bias sigma from 0.0015 deg/h to 0.21 deg/h (1e-6 rad/s): the graph fits a
 1.3 deg/h gyro bias on run 6 of the Osborne eight-line study (true ~0.003 deg/h).
 
-KNOWN DEFECT (issue 13), hence the strict xfails: removing the floor (correlation-scaled square-root information)
-made the 20-run study worse (ml+graph 186 -> 307 m RMS, NEES 3.0 -> 8.6): in SI units the navigation grade's
-gyro-bias prior (7e-9 rad/s) and random walk (1.7e-10 rad/s/sqrt(s)) leave each 20 s CombinedImuFactor covariance with
-condition number 2.8e14 and the full system indeterminate under Cholesky, so the floor is, by accident, what keeps the
-graph numerically sane. The fix needs the bias states rescaled (or conditioned) before the floor can go."""
+KNOWN DEFECT (issue 13), hence the strict xfails: removing the floor (correlation-scaled square-root information,
+commit 3f391fd) made the 20-run study worse (ml+graph 186 -> 307 m RMS, NEES 3.0 -> 8.6). Not numerics (iSAM2's
+marginals match a dense column-scaled solve with and without the floor): the loose gyro bias absorbs a model
+difference from the UKF not yet found; the floor can go once that is fixed.
+"""
 
 from __future__ import annotations
 
