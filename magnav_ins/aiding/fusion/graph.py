@@ -180,6 +180,10 @@ class GraphFuser:
         b_a = init.bias_a if hasattr(init, "bias_a") else np.zeros(3)
         b_g = init.bias_g if hasattr(init, "bias_g") else np.zeros(3)
         bias0 = gtsam.imuBias.ConstantBias(np.asarray(b_a, float), np.asarray(b_g, float))
+        # NOTE (issue 13): this absolute 1e-12 floor widens a navigation-grade gyro-bias sigma from 7e-9 to 1e-6 rad/s
+        # (0.0015 -> 0.21 deg/h; tests/test_fusion_graph_prior.py, strict xfail). Removing it made the Osborne
+        # eight-line study worse (186 -> 307 m, NEES 3.0 -> 8.6; not numerics: iSAM2's marginals match a dense scaled
+        # solve): the loose gyro bias absorbs a model difference from the UKF not yet found. Fix that first.
         Pl = self._layout_to_gtsam_cov(symmetrise(P0[:15, :15], 1e-12), state0)
         values = gtsam.Values()
         values.insert(X(0), state0.pose())
