@@ -136,11 +136,11 @@ def test_ground_alignment_holds_the_position_where_a_free_mems_ins_drifts(align)
 
 
 class _SigmaPipeline:
-    """A pipeline whose horizontal sigma (m) is a function of time, for the announcement tests."""
+    """A pipeline whose horizontal sigma (m) is a function of time, with a fixed velocity sigma (m/s) and protection
+    level (m), for the announcement and GPS_INPUT accuracy tests."""
 
-    def __init__(self, nav0: NavState, sigma_of_t) -> None:  # noqa: ANN001
-        self.nav = nav0
-        self.sigma_of_t = sigma_of_t
+    def __init__(self, nav0: NavState, sigma_of_t, sigma_v: float = 0.01, hpl: float = math.nan) -> None:  # noqa: ANN001
+        self.nav, self.sigma_of_t, self.sigma_v, self.hpl = nav0, sigma_of_t, sigma_v, hpl
 
     def push_imu(self, t, gyro_b, accel_b) -> None:  # noqa: ANN001, ARG002
         self.nav = NavState(t, self.nav.lat, self.nav.lon, self.nav.h, self.nav.v_n, self.nav.q_nb)
@@ -151,7 +151,8 @@ class _SigmaPipeline:
     def estimate(self) -> NavEstimate:
         P = np.eye(15) * 1e-4
         P[0, 0] = P[1, 1] = self.sigma_of_t(self.nav.t) ** 2
-        return NavEstimate(self.nav, P)
+        P[3, 3] = P[4, 4] = self.sigma_v**2
+        return NavEstimate(self.nav, P, hpl_m=self.hpl)
 
 
 def test_statustext_once_per_change_rate_limited_and_without_numbers():

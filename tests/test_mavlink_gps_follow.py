@@ -18,9 +18,8 @@ import math
 
 import numpy as np
 import pytest
-from test_mavlink_bridge_states import ARDUPILOT, LAT, LON, Heartbeat, _at_rest, _bridge
+from test_mavlink_bridge_states import ARDUPILOT, LAT, LON, Heartbeat, _at_rest, _bridge, _SigmaPipeline
 
-from magnav_ins.core.types import NavEstimate, NavState
 from magnav_ins.mavlink.bridge import MAX_SPEED_FLOOR_MPS, BridgeConfig
 
 #: EKF3 copter defaults: EK3_VELNE_M_NSE, EK3_POSNE_M_NSE (m/s, m), EK3_ACC_P_NSE (m/s^2), its prediction step (s)
@@ -82,27 +81,8 @@ def test_the_bridges_floor_makes_ekf3_follow_sooner_without_a_velocity_jolt(sigm
     assert vmax < 0.5, vmax
 
 
-class _Pipeline:
-    """A pipeline with a fixed horizontal sigma (m), velocity sigma (m/s) and protection level (m)."""
-
-    def __init__(self, nav0: NavState, sigma_h: float, sigma_v: float, hpl: float = math.nan) -> None:
-        self.nav, self.sigma_h, self.sigma_v, self.hpl = nav0, sigma_h, sigma_v, hpl
-
-    def push_imu(self, t, gyro_b, accel_b) -> None:  # noqa: ANN001, ARG002
-        self.nav = NavState(t, self.nav.lat, self.nav.lon, self.nav.h, self.nav.v_n, self.nav.q_nb)
-
-    def push_reading(self, t, value) -> None:  # noqa: ANN001, ARG002
-        pass
-
-    def estimate(self) -> NavEstimate:
-        P = np.eye(15) * 1e-4
-        P[0, 0] = P[1, 1] = self.sigma_h**2
-        P[3, 3] = P[4, 4] = self.sigma_v**2
-        return NavEstimate(self.nav, P, hpl_m=self.hpl)
-
-
 def _run(config: BridgeConfig, sigma_h: float, sigma_v: float, hpl: float = math.nan) -> list[dict]:
-    b, link, now = _bridge(config, make_pipeline=lambda nav0, s: _Pipeline(nav0, sigma_h, sigma_v, hpl))
+    b, link, now = _bridge(config, make_pipeline=lambda nav0, s: _SigmaPipeline(nav0, lambda t: sigma_h, sigma_v, hpl))
     for k in range(1, 301):
         now[0] = 0.01 * k
         link.inbox.append(_at_rest(now[0]))
