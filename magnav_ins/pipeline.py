@@ -14,7 +14,11 @@ Loop (Wang et al. 2022, seed 001, Fig. 1 / sec. 3.3; Storms 2009, seed 004, sec.
   covariance and velocity are stored with the reading. A batch matcher gets a :class:`MatchWindow` of the last
   ``window`` readings every ``match_every`` readings (once the window is full); a recursive matcher is initiated
   from the first estimate, predicted with each new estimate and updated with each reading, and asked for a fix every
-  ``match_every`` readings. When a fix is accepted, the stored window positions are shifted by the correction
+  ``match_every`` readings. A batch window whose INS-indicated track spans less than ``min_section_m`` (default: one
+  map cell) is not matched: "no fix: section too short" (a hovering, landing or parked vehicle: its readings repeat
+  one value, which fits every place where the map is flat along the few metres the INS drifts, so a profile matcher
+  would issue a narrow fix anywhere; measured on the SITL flight of issue 17, fixes from the descent and the ground
+  were 120-780 m off with 25-35 m sigmas). When a fix is accepted, the stored window positions are shifted by the correction
   applied at the fix time, so the window stays one rigid INS track.
 * Every fix (also "no fix") goes to ``fuser.correct`` (its :class:`Innovation` records acceptance and reason), with
   the optional height aid ``height_aid(t) -> (h_m, sigma_m)`` (e.g. a barometer). A batch matcher in retrodiction
@@ -82,13 +86,23 @@ class _Stored:
     v_ne: FloatArray
 
 
+def _track_span_m(stored: list[_Stored]) -> float:
+    """Diagonal (m) of the north/east extent of the stored INS-indicated positions."""
+    lat = np.array([x.lat for x in stored])
+    lon = np.array([x.lon for x in stored])
+    dn, de = latlon_to_meters(lat - lat[0], lon - lon[0], float(lat[0]))
+    return float(np.hypot(np.ptp(dn), np.ptp(de)))
+
+
 class Pipeline:
     """Compose a fuser, a matcher and a map (module docstring).
 
     ``window``: readings per batch-matcher window (K); ``match_every``: readings between match attempts;
     ``reading_sigma`` and ``reading_kind``: the readings' 1-sigma noise and kind for :meth:`push_reading` (taken from
     the :class:`FieldReadings` in :meth:`run`); ``height_aid``: optional ``t -> (h, sigma)`` height source;
-    ``rng``: generator for a recursive matcher's initiation.
+    ``rng``: generator for a recursive matcher's initiation; ``min_section_m``: shortest INS-indicated track (m, the
+    diagonal of its north/east extent) a batch window must span to be matched (None: the map's cell size,
+    ``fmap.spacing_m``, else 0; 0 = no test; module docstring).
     """
 
     def __init__(
@@ -103,6 +117,7 @@ class Pipeline:
         reading_kind: FieldKind | str | None = None,
         height_aid: HeightAid | None = None,
         rng: np.random.Generator | None = None,
+        min_section_m: float | None = None,
     ) -> None:
         if matcher is not None and fmap is None:
             raise ConfigError("Pipeline: a matcher needs a map (fmap)")
@@ -118,6 +133,12 @@ class Pipeline:
         self.reading_kind = FieldKind(kind) if kind is not None else None
         self.height_aid = height_aid
         self.rng = rng if rng is not None else np.random.default_rng(0)
+        if min_section_m is None:
+            spacing = getattr(fmap, "spacing_m", None)
+            min_section_m = float(max(spacing)) if spacing is not None else 0.0
+        if not (np.isfinite(min_section_m) and min_section_m >= 0.0):
+            raise ConfigError(f"Pipeline: min_section_m must be a number of metres >= 0, got {min_section_m!r}")
+        self.min_section_m = float(min_section_m)
         self._recursive = matcher is not None and hasattr(matcher, "initiate") and hasattr(matcher, "to_fix")
         # retrodiction (Wang sec. 3.3): the matcher returns a fix per scan with their joint covariance, the fuser
         # takes them as one correlated measurement (aiding.fusion.batch)
@@ -282,6 +303,14 @@ class Pipeline:
                 self._apply_fix(self.matcher.to_fix(self._rstate), est)
         elif len(self._stored) == self.window and self._n_readings % self.match_every == 0:
             s = list(self._stored)
+            span = _track_span_m(s)
+            if span < self.min_section_m:
+                reason = (
+                    f"section too short: the INS track spans {span:.0f} m, under {self.min_section_m:g} m "
+                    "(hovering or on the ground?)"
+                )
+                self._apply_fix(Fix.no_fix(t, reason, getattr(self.matcher, "name", "matcher")), est)
+                return
             readings = FieldReadings(
                 np.array([x.t for x in s]), np.array([x.value for x in s]), self.reading_sigma, self.reading_kind
             )

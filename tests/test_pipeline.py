@@ -188,3 +188,37 @@ def test_recursive_matcher_loop() -> None:
     n = int(np.sum(readings.t <= imu.t[600]))
     assert m.calls == {"initiate": 1, "predict": n - 1, "update": n}
     assert len(res.fixes) == n // 10 and all(inn.accepted for inn in res.innovations)
+
+
+class CellMap(FlatMap):
+    """Test-only flat map with 100 m cells (the default shortest section)."""
+
+    spacing_m = (100.0, 100.0)
+
+
+def test_a_window_that_did_not_move_is_not_matched() -> None:
+    """A hovering or parked vehicle: its readings repeat one value, so a profile matcher would fit anywhere the map is
+    flat. Such windows get "no fix: section too short" without a scan; the moving flight above is matched."""
+    d = DEG_TO_RAD
+    still = simulate.stationary(45.0 * d, 7.0 * d, 500.0, 0.3, 60.0, RATE_HZ)
+    imu = simulate.ideal_imu(still)
+    nz = ImuNoise.from_grade(imu_models.get_grade("tactical"))
+    sig0 = np.r_[[10.0] * 3, [0.1] * 3, [0.02 * d] * 3, [1e-3] * 3, [1e-6] * 3]
+    init = NavEstimate(still.at(0), np.diag(sig0**2), LAYOUT_15)
+    t_r = np.arange(1.0, 59.5, 1.0) + 0.05
+    rd = FieldReadings(t_r, np.zeros(len(t_r)), 1.0, FieldKind.GRAVITY_DISTURBANCE_MGAL)
+    matcher = NoisyTruthMatcher(still)
+    res = Pipeline(make_fuser("ukf", init, nz), matcher, CellMap(), window=10, match_every=10).run(imu, rd)
+    assert matcher.windows == [] and len(res.fixes) == 5
+    assert all(not f.available and f.reason.startswith("section too short") for f in res.fixes)
+    assert all(not inn.accepted for inn in res.innovations)
+    # the same still vehicle with the test turned off is matched; the moving flight (800 m a window) passes the default
+    matcher = NoisyTruthMatcher(still)
+    Pipeline(make_fuser("ukf", init, nz), matcher, CellMap(), window=10, match_every=10, min_section_m=0.0).run(imu, rd)
+    assert len(matcher.windows) == 5
+    traj, imu, init, nz, readings = scenario()
+    matcher = NoisyTruthMatcher(traj)
+    res = Pipeline(make_fuser("ukf", init, nz), matcher, CellMap(), window=10, match_every=10).run(imu, readings)
+    assert len(matcher.windows) == len(res.fixes) > 0 and all(f.available for f in res.fixes)
+    with pytest.raises(ConfigError, match="min_section_m"):
+        Pipeline(make_fuser("ukf", init, nz), matcher, CellMap(), min_section_m=float("nan"))

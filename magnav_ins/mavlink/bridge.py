@@ -1247,6 +1247,8 @@ def warm_up(
         lat0, lon0 = _map_centre(fmap)
         nav = NavState(0.0, lat0, lon0, 300.0, np.zeros(3), q_nb_from_euler(0.0, 0.0, 0.0))
         pipe = make_pipeline(nav, 30.0)
+        if hasattr(pipe, "min_section_m"):  # the warm-up stands still: scan anyway, the kernels are what it is for
+            pipe.min_section_m = 0.0
         if value_needed := field_value_at is not None:  # long enough for one full matcher window (one scan)
             seconds = max(seconds, (int(getattr(pipe, "window", 0) or 0) + 1) * reading_interval_s)
         g = gravity_n(lat0, 300.0)
