@@ -1,12 +1,9 @@
-"""The graph fuser's prior on node 0 should be the initial covariance itself. Its variances span ~25 orders of
-magnitude (km^2 positions, ~5e-17 rad^2/s^2 for a navigation-grade gyro bias), and the absolute 1e-12 eigenvalue floor
-in ``GraphFuser.__init__`` widens the gyro-bias sigma from 0.0015 deg/h to 0.21 deg/h (1e-6 rad/s): the graph fits a
-1.3 deg/h gyro bias on run 6 of the Osborne eight-line study (true ~0.003 deg/h).
-
-KNOWN DEFECT (issue 13), hence the strict xfails: removing the floor (correlation-scaled square-root information,
-commit 3f391fd) made the 20-run study worse (ml+graph 186 -> 307 m RMS, NEES 3.0 -> 8.6). Not numerics (iSAM2's
-marginals match a dense column-scaled solve with and without the floor): the loose gyro bias absorbs a model
-difference from the UKF not yet found; the floor can go once that is fixed.
+"""The graph fuser's prior on node 0 is the initial covariance itself. Its variances span ~25 orders of magnitude
+(km^2 positions, ~5e-17 rad^2/s^2 for a navigation-grade gyro bias); an absolute 1e-12 eigenvalue floor (before
+issue 13's fix) widened the gyro-bias sigma from 0.0015 deg/h to 0.21 deg/h (1e-6 rad/s) and the graph fitted a
+1.3 deg/h gyro bias on run 6 of the Osborne eight-line study (true ~0.003 deg/h). The floor hid a model defect
+(the Earth rate taken out of the gyros at the predicted attitude with no Jacobian, ``test_fusion_graph_earth_rate.py``);
+with that fixed the prior is exact (correlation-scaled square-root information).
 """
 
 from __future__ import annotations
@@ -31,13 +28,7 @@ def _prior(grade_name: str) -> tuple[NavEstimate, ImuNoise]:
     return NavEstimate(nav0, P0), ImuNoise.from_grade(grade)
 
 
-_FLOOR = "issue 13: the 1e-12 eigenvalue floor widens sub-1e-6 bias sigmas (module docstring)"
-
-
-@pytest.mark.parametrize(
-    "grade_name",
-    [pytest.param("navigation", marks=pytest.mark.xfail(strict=True, reason=_FLOOR)), "tactical", "consumer"],
-)
+@pytest.mark.parametrize("grade_name", ["navigation", "tactical", "consumer"])
 def test_node0_marginal_is_the_initial_covariance(grade_name: str) -> None:
     """Every 1-sigma of the node-0 marginal (LAYOUT_15) equals the initial one within 1 %, the smallest (gyro bias)
     included."""
@@ -48,7 +39,6 @@ def test_node0_marginal_is_the_initial_covariance(grade_name: str) -> None:
     np.testing.assert_allclose(sig, sig0, rtol=1e-2)
 
 
-@pytest.mark.xfail(strict=True, reason=_FLOOR)
 def test_ideal_imu_prior_holds_the_zero_biases() -> None:
     """A grade with zero bias sigmas (an ideal IMU) still builds, with the biases held to ~1e-10."""
     init, noise = _prior("navigation")

@@ -9,12 +9,18 @@ fix time; a ``CombinedImuFactor`` between consecutive nodes (bias random walk in
 initial :class:`NavEstimate`.
 
 Frames. GTSAM works here in an Earth-fixed Cartesian frame L: the NED axes at the initial position, frozen to the
-Earth (``PreintegrationCombinedParams.MakeSharedD(g)``: nav = NED, gravity +down). L is Earth-fixed, so the Earth rate
-is the constant ``omega_ie_L`` and there is no transport rate; the plumb-line gravity turns as the vehicle moves away
-from the origin (1 mrad per 6.4 km), which a single ``n_gravity`` cannot express. The samples fed to the
-preintegrator are therefore compensated to L: ``omega' = omega - C_bL omega_ie_L`` and
-``f' = f + C_bL (g_L(r) - g_L(0) - 2 omega_ie_L x v_L)`` with ``r, v_L, C_bL`` the current prediction (refreshed every
-``gravity_update_s``); GTSAM's Coriolis option stays off. Body = FRD; ``Pose3`` rotation = ``C_Lb``; quaternion
+Earth (nav = NED, gravity +down). L is Earth-fixed, so the Earth rate is the constant ``omega_ie_L`` and there is no
+transport rate; the plumb-line gravity turns as the vehicle moves away from the origin (1 mrad per 6.4 km). Each IMU
+factor carries, in L, the gravity at its first node ``g_L(r_i)`` (``n_gravity``) and the Earth rate as GTSAM's
+Coriolis vector, so that they enter through the first node's state with their Jacobians: the Earth rate taken out of
+the gyros is ``R_i^T omega_ie_L dt`` and moves with the node's rotation ``R_i`` (a heading error drives the tilt,
+``-omega_ie x psi``, as in the UKF's error model). Before issue 13's fix the Earth rate, Coriolis and gravity change
+were taken out of the samples at the predicted attitude, frozen into the factor without that Jacobian: the graph
+could not see its heading error through the tilt it drives and fitted the tilt drift with heading, tilt and gyro
+bias (Osborne eight-line study: 7-20 mrad heading error with a 2 mrad sigma). What GTSAM's first-order terms leave
+over the interval (the body turning away from ``R_i``, the velocity changing from ``v_i``, the gravity changing from
+``g_L(r_i)``) is compensated in the samples (:meth:`_integrate`), and with keyframes on a node is added at least
+every ``_KEYFRAME_MAX_S``. Body = FRD; ``Pose3`` rotation = ``C_Lb``; quaternion
 order never leaves this module (rotations cross as matrices). The public face speaks :class:`NavState` /
 :class:`NavEstimate` in WGS-84: L <-> geodetic through :class:`common.LocalFrame`.
 
@@ -69,11 +75,43 @@ from .integrity import (
 FloatArray = np.ndarray
 _TIME_TOL = 1e-9
 _RW_FLOOR = 1e-12  # bias random walk for random-constant biases (keeps the factor's covariance regular)
+_VAR_FLOOR = 1e-20  # variance given to a state the prior holds exactly (an ideal IMU's zero bias sigma), SI units^2
+#: with keyframes on (``max_preintegration_rad``), also a keyframe once a preintegration spans this long (s): GTSAM's
+#: Earth-rate and Coriolis terms are first order over the interval (rotation, velocity at its start); error-free IMU
+#: on a 600 s flight with 6 deg/s turns and no fixes: 30 m with rotation keyframes only, 14.7 m at 60 s, 2.0 m at 20 s
+_KEYFRAME_MAX_S = 20.0
 
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     """``a x b`` of two 3-vectors (numpy's general ``cross`` costs ~40 us a call: most of the per-sample time)."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _sqrt_information(P: FloatArray) -> FloatArray:
+    """A square root ``U`` of the information ``P^-1`` (``U^T U = P^-1``) of a covariance whose
+    variances span ~25 orders of magnitude (km^2 positions, ~5e-17 rad^2/s^2 navigation-grade gyro biases).
+
+    Works on the correlation matrix ``C = D^-1 P D^-1`` (``D`` the standard deviations), whose eigenvalues are
+    clipped at 1e-12 (PD) without touching the small states, then ``U = chol(C^-1)^T D^-1``. A state with a
+    non-positive variance (held exactly) gets ``_VAR_FLOOR``. An absolute eigenvalue floor on ``P`` itself (1e-12
+    before) raised the navigation grade's 0.0015 deg/h gyro-bias sigma to 1e-6 rad/s = 0.21 deg/h, letting the graph
+    fit a 1.3 deg/h gyro bias on the Osborne tie-line flight."""
+    P = 0.5 * (np.asarray(P, float) + np.asarray(P, float).T)
+    d = np.diag(P).copy()
+    held = ~(d > 0)
+    if held.any():
+        P = P.copy()
+        P[held, :] = 0.0
+        P[:, held] = 0.0
+        P[held, held] = _VAR_FLOOR
+        d = np.diag(P).copy()
+    sd = np.sqrt(d)
+    C = P / np.outer(sd, sd)
+    w, Vec = np.linalg.eigh(0.5 * (C + C.T))
+    w = np.maximum(w, 1e-12)
+    Cinv = (Vec / w) @ Vec.T
+    L = np.linalg.cholesky(0.5 * (Cinv + Cinv.T))
+    return L.T / sd[None, :]
 
 
 @dataclass
@@ -96,7 +134,8 @@ class GraphFuser:
     rotation preintegrated since the last node exceeds this angle (None: never). The gtsam wheel preintegrates the
     rotation in tangent space with Euler steps: through a 166-degree turn (roll-in at 42 deg/s, 50 Hz) one
     preintegration is 1.0 mrad off the product of the per-sample rotations, 10 s pieces 0.09 mrad, 2 s pieces
-    0.002 mrad; the tilt and heading errors that leaves made the graph drift 15 km on a 59-min survey flight.
+    0.002 mrad; the tilt and heading errors that leaves made the graph drift 15 km on a 59-min survey flight. With
+    keyframes on, a node is also added once a preintegration spans ``_KEYFRAME_MAX_S`` (20 s).
     ``altitude_hold`` (m, ellipsoidal): the graph has no strapdown clamp, so a fix without its own height carries
     this height with 1-sigma ``altitude_hold_sigma_m``, a pseudo-measurement kept loose because the true height
     departs from it (a draped survey flight by tens of metres; a 1 m sigma bent the horizontal solution: error-free
@@ -155,17 +194,8 @@ class GraphFuser:
         self.altitude_hold_sigma_m = float(altitude_hold_sigma_m)
         nav0 = init.nav
         self.frame = LocalFrame(nav0.lat, nav0.lon, nav0.h)
-        self._g0_L = self.frame.gravity_L(np.zeros(3))
-
-        p = gtsam.PreintegrationCombinedParams.MakeSharedD(float(self._g0_L[2]))
-        p.setAccelerometerCovariance(np.eye(3) * noise.accel_noise**2)
-        p.setGyroscopeCovariance(np.eye(3) * noise.gyro_noise**2)
-        p.setIntegrationCovariance(np.eye(3) * integration_sigma**2)
-        p.setBiasAccCovariance(np.eye(3) * max(noise.accel_bias_rw, _RW_FLOOR) ** 2)
-        p.setBiasOmegaCovariance(np.eye(3) * max(noise.gyro_bias_rw, _RW_FLOOR) ** 2)
-        p.setOmegaCoriolis(np.zeros(3))  # Earth rate and Coriolis are compensated in the samples (_integrate)
         self._w_ie_L = omega_ie_n(nav0.lat)  # the Earth rate, constant in the Earth-fixed frame L
-        self._params = p
+        self._integration_sigma = float(integration_sigma)
 
         ip = gtsam.ISAM2Params()
         ip.setFactorization(factorization.upper())
@@ -180,18 +210,16 @@ class GraphFuser:
         b_a = init.bias_a if hasattr(init, "bias_a") else np.zeros(3)
         b_g = init.bias_g if hasattr(init, "bias_g") else np.zeros(3)
         bias0 = gtsam.imuBias.ConstantBias(np.asarray(b_a, float), np.asarray(b_g, float))
-        # NOTE (issue 13): this absolute 1e-12 floor widens a navigation-grade gyro-bias sigma from 7e-9 to 1e-6 rad/s
-        # (0.0015 -> 0.21 deg/h; tests/test_fusion_graph_prior.py, strict xfail). Removing it made the Osborne
-        # eight-line study worse (186 -> 307 m, NEES 3.0 -> 8.6; not numerics: iSAM2's marginals match a dense scaled
-        # solve): the loose gyro bias absorbs a model difference from the UKF not yet found. Fix that first.
-        Pl = self._layout_to_gtsam_cov(symmetrise(P0[:15, :15], 1e-12), state0)
+        # the prior is the initial covariance itself (_sqrt_information: no absolute eigenvalue floor, which had
+        # widened a navigation-grade gyro-bias sigma from 0.0015 to 0.21 deg/h; tests/test_fusion_graph_prior.py)
+        Pl = self._layout_to_gtsam_cov(P0[:15, :15], state0)
         values = gtsam.Values()
         values.insert(X(0), state0.pose())
         values.insert(V(0), state0.velocity())
         values.insert(B(0), bias0)
         # one joint Gaussian prior on (X0, V0, B0) that keeps the cross-covariances of the initial P: the whitened
         # linear factor ||U dx||^2 with U^T U = Pl^-1, held at the initial values (LinearContainerFactor)
-        U = np.linalg.cholesky(np.linalg.inv(Pl)).T
+        U = _sqrt_information(Pl)
         prior = gtsam.JacobianFactor(X(0), U[:, 0:6], V(0), U[:, 6:9], B(0), U[:, 9:15], np.zeros(15),
                                      gtsam.noiseModel.Unit.Create(15))  # fmt: skip
         graph = gtsam.NonlinearFactorGraph()
@@ -246,7 +274,7 @@ class GraphFuser:
     def _layout_to_gtsam_cov(self, P15: FloatArray, s: gtsam.NavState) -> FloatArray:
         J = self._J_gtsam_to_layout(s)
         Ji = np.linalg.inv(J)
-        return symmetrise(Ji @ P15 @ Ji.T, 1e-14)
+        return symmetrise(Ji @ np.asarray(P15, float) @ Ji.T)
 
     # --------------------------------------------------------------------------------------------- helpers
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
@@ -254,15 +282,36 @@ class GraphFuser:
             self._graph.add(graph.at(i))
         self._isam.update(graph, values)
 
+    def _params_at(self, r_L: FloatArray) -> gtsam.PreintegrationCombinedParams:
+        """Preintegration parameters of an IMU factor whose first node is at ``r_L`` (m, L): the IMU noise, the
+        plumb-line gravity there, ``g_L(r_L)`` (a vector in L, not only down), and the Earth rate ``omega_ie_L`` as
+        GTSAM's Coriolis vector. Both enter the factor in L through the first node's state (GTSAM's ``correctPIM``
+        with its Jacobians w.r.t. that node's rotation and velocity), not as body-frame terms in the samples."""
+        n = self.noise
+        p = gtsam.PreintegrationCombinedParams(np.asarray(self.frame.gravity_L(r_L), float))
+        p.setAccelerometerCovariance(np.eye(3) * n.accel_noise**2)
+        p.setGyroscopeCovariance(np.eye(3) * n.gyro_noise**2)
+        p.setIntegrationCovariance(np.eye(3) * self._integration_sigma**2)
+        p.setBiasAccCovariance(np.eye(3) * max(n.accel_bias_rw, _RW_FLOOR) ** 2)
+        p.setBiasOmegaCovariance(np.eye(3) * max(n.gyro_bias_rw, _RW_FLOOR) ** 2)
+        p.setOmegaCoriolis(np.asarray(self._w_ie_L, float))
+        return p
+
+    def _pim_for(self, node: _Node) -> gtsam.PreintegratedCombinedMeasurements:
+        """An empty preintegration from ``node`` (its position's gravity, its bias)."""
+        return gtsam.PreintegratedCombinedMeasurements(self._params_at(node.state.position()), node.bias)
+
     def _new_pim(self) -> gtsam.PreintegratedCombinedMeasurements:
-        return gtsam.PreintegratedCombinedMeasurements(self._params, self._node.bias)
+        return self._pim_for(self._node)
 
     def _integrate(self, pim, node: _Node, t_end: float, dt: float, w: FloatArray, f: FloatArray, comp: dict) -> None:
         """Preintegrate one sample compensated to the Earth-fixed frame L (dynamics ``dC_Lb = C_Lb [omega_Lb x]``,
-        ``dv_L = C_Lb f + g_L(r) - 2 omega_ie x v_L``): ``omega' = omega - C_bL omega_ie_L`` and
-        ``f' = f + C_bL (g_L(r) - g_L(0) - 2 omega_ie_L x v_L)``, with ``r, v_L, C_bL`` predicted and refreshed
-        every ``gravity_update_s``; GTSAM's own Coriolis option is left off (its rotation term is first order
-        over the whole interval).
+        ``dv_L = C_Lb f + g_L(r) - 2 omega_ie x v_L``) beyond what the factor itself takes out at its first node
+        ``i`` (:meth:`_params_at`: ``g_L(r_i)``, ``R_i^T omega_ie_L`` in node-i body axes, ``2 omega_ie_L x v_i``):
+        ``omega' = omega - (C_bL omega_ie_L - dR_i^T R_i^T omega_ie_L)`` (``dR_i`` the rotation preintegrated so
+        far) and ``f' = f + C_bL (g_L(r) - g_L(r_i) - 2 omega_ie_L x (v_L - v_i))``, with ``r, v_L, C_bL``
+        predicted and refreshed every ``gravity_update_s``. These residuals vanish on a straight leg, so the
+        attitude they are resolved with no longer matters to first order.
 
         gtsam integrates each sample as constant body rate and specific force, rotating the velocity increment by
         the attitude at the start of the sample. The samples are mean rates over the interval, so the increments
@@ -270,12 +319,19 @@ class GraphFuser:
         the strapdown's: coning ``dtheta + dtheta_prev x dtheta / 12`` and rotation + sculling
         ``dv + dtheta x dv / 2 + (dtheta_prev x dv + dv_prev x dtheta) / 12`` (Savage 1998). On a manoeuvring
         flight with 6 deg/s turns (error-free IMU, 600 s, keyframes) this takes the graph from 30 m to 2.4 m."""
+        if "g_i" not in comp:  # the factor's own terms (_params_at): gravity at the node, its Earth rate, Coriolis
+            comp["g_i"] = self.frame.gravity_L(node.state.position())
+            comp["w_i"] = node.state.attitude().matrix().T @ self._w_ie_L
         if t_end - comp["t"] >= self.gravity_update_s:
             pred = pim.predict(node.state, node.bias)
             C_bL = pred.attitude().matrix().T
-            acc_L = self.frame.gravity_L(pred.position()) - self._g0_L - 2.0 * _cross(self._w_ie_L, pred.velocity())
+            acc_L = (
+                self.frame.gravity_L(pred.position())
+                - comp["g_i"]
+                - 2.0 * _cross(self._w_ie_L, pred.velocity() - node.state.velocity())
+            )
             comp["df_b"] = C_bL @ acc_L
-            comp["dw_b"] = -(C_bL @ self._w_ie_L)
+            comp["dw_b"] = -(C_bL @ self._w_ie_L - pim.deltaRij().matrix().T @ comp["w_i"])
             comp["t"] = t_end
         b_g, b_a = node.bias.gyroscope(), node.bias.accelerometer()
         dth = (w + comp["dw_b"] - b_g) * dt
@@ -344,6 +400,7 @@ class GraphFuser:
             self._t = t
             if self.max_preintegration_rad is not None and (
                 np.linalg.norm(gtsam.Rot3.Logmap(self._pim.deltaRij())) > self.max_preintegration_rad
+                or t - self._node.t >= _KEYFRAME_MAX_S
             ):
                 self._comp = comp
                 self._add_node(t, None, None, None)  # a keyframe: keeps each preintegrated rotation small
@@ -457,7 +514,7 @@ class GraphFuser:
         values.insert(X(k), state.pose())
         values.insert(V(k), state.velocity())
         values.insert(B(k), bias)
-        U = np.linalg.cholesky(np.linalg.inv(symmetrise(P_g, 1e-14))).T
+        U = _sqrt_information(P_g)
         lin = gtsam.JacobianFactor(X(k), U[:, 0:6], V(k), U[:, 6:9], B(k), U[:, 9:15], np.zeros(15),
                                    gtsam.noiseModel.Unit.Create(15))  # fmt: skip
         return gtsam.LinearContainerFactor(lin, values)
@@ -654,7 +711,7 @@ class GraphFuser:
             # the segment ends bracketing each wanted time (and the node b itself) are predicted
             seg = np.searchsorted(ends, t_out[q] - _TIME_TOL)
             need = set(seg.tolist()) | set((seg - 1).tolist()) | {len(idx) - 1}
-            pim = gtsam.PreintegratedCombinedMeasurements(self._params, nodes[k].bias)
+            pim = self._pim_for(nodes[k])
             comp = {"t": -np.inf, "df_b": np.zeros(3), "dw_b": np.zeros(3)}
             pred: dict[int, gtsam.NavState] = {-1: nodes[k].state}
             t_prev = a
