@@ -277,3 +277,25 @@ def test_ukf_fault_margin_bounds_what_an_undetected_fix_bias_leaves() -> None:
     # the margin depends on covariances only: the same with and without the fault (up to the UKF's linearisation
     # about a trajectory 20-40 m apart)
     np.testing.assert_allclose(m0, m1, rtol=0.02, atol=1e-6)
+
+
+def test_doubt_of_an_excluded_edge_fix_counts_only_its_informative_direction() -> None:
+    """An edge fix (the likelihood matcher's ``prior_fix``: cross-track position, 10 km sigma along the track) that
+    the gate excludes leaves a doubt of its cross-track residual, not of its 10 km (SITL run 38: HPL 51 km for 10 s,
+    then the autopilot's EKF failsafe). A fix informative in both directions keeps the whole doubt."""
+    P = np.eye(2) * 30.0**2
+    heading = math.radians(30.0)  # along-track unit vector (north, east)
+    u = np.array([math.cos(heading), math.sin(heading)])
+    n = np.array([-u[1], u[0]])
+    R_edge = 1e4**2 * np.outer(u, u) + 20.0**2 * np.outer(n, n)
+    r = 400.0 * n + 3000.0 * u  # 400 m across (excluded), 3 km along: no information there
+    m = FaultMonitor(0.9999)
+    v = m.assess(0.0, r, P + R_edge, R_edge, P)
+    assert v.action == "reject"
+    K = integrity_factor(1e-3)
+    expected = 400.0 + K * math.sqrt(30.0**2 + 20.0**2)  # the cross-track residual, the fix's and filter's sigmas
+    assert m.hpl(P) == pytest.approx(expected, rel=1e-6)
+    m2 = FaultMonitor(0.9999)
+    R = np.eye(2) * 20.0**2
+    assert m2.assess(0.0, r, P + R, R, P).action == "reject"
+    assert m2.hpl(P) == pytest.approx(math.hypot(400.0, 3000.0) + K * math.sqrt(30.0**2 + 20.0**2), rel=1e-6)
