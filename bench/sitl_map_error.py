@@ -2,7 +2,7 @@
 
 The world (:func:`magnav_ins.mavlink.sitl.osborne_world`: the Osborne survey gridded at 50 m from every line) minus
 ``builtin:osborne-magnetic`` (flight lines only, 100 m) along ``--sections`` straight sections of ``--length-m``
-(readings 7.5 m apart: 0.5 s at 15 m/s) at random places and headings over the whole map (the flown routes play no
+(readings 7.5 m apart) at random places and headings over the whole map (the flown routes play no
 part), each demeaned (the bridge's matcher demeans). One JSON line: percentiles of the sections' RMS error (nT), the
 error per unit map gradient (``c`` in ``sigma^2 = s0^2 + (c |grad|)^2``: median of the sections' RMS error over
 their RMS gradient, and per gradient bin), the mean square of the sections' RMS normalised by that model with the
@@ -16,8 +16,9 @@ matcher (:func:`magnav_ins.mavlink.sitl_flight.sitl_matcher`, optionally changed
 fixes issued, the refusals by reason, the fixes' NEES (``e' C^-1 e / 2``: mean with its bootstrap 90 % interval,
 median; 0.69 for a Gaussian), the share beyond the 99.9 % quantile, the median fix sigmas and error (m).
 
-Usage: ``python bench/sitl_map_error.py [--sections 2000] [--seed 7] [--s0 0.3] [--c 6.5] [--uniform 4]``
-       ``python bench/sitl_map_error.py --fixes 400 [--seed 1] [--prior 25] [--speed 15] [--matcher JSON]``
+Usage: ``python bench/sitl_map_error.py [--sections 2000] [--length-m 400] [--seed 7] [--s0 0.3] [--c 6.5]``
+       ``[--uniform 4]``
+       ``python bench/sitl_map_error.py --fixes 400 [--seed 1] [--prior 25] [--speed 10] [--matcher JSON]``
 """
 
 from __future__ import annotations
@@ -36,14 +37,14 @@ R_EARTH = 6378137.0
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sections", type=int, default=2000)
-    ap.add_argument("--length-m", type=float, default=600.0)
+    ap.add_argument("--length-m", type=float, default=400.0)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--s0", type=float, default=0.3, help="model floor, nT")
     ap.add_argument("--c", type=float, default=6.5, help="model error per unit gradient, m")
     ap.add_argument("--uniform", type=float, default=4.0, help="a uniform sigma to compare, nT")
     ap.add_argument("--fixes", type=int, default=0, help="check N fixes of the bridge's matcher instead")
     ap.add_argument("--prior", type=float, default=25.0, help="INS prior 1-sigma per axis, m (--fixes)")
-    ap.add_argument("--speed", type=float, default=15.0, help="m/s (--fixes)")
+    ap.add_argument("--speed", type=float, default=10.0, help="m/s (--fixes; the SITL copter flies 10)")
     ap.add_argument("--matcher", default=None, help="JSON changes to the SITL matcher (--fixes)")
     a = ap.parse_args()
     lat0, lon0, dlat, dlon, grid = read_maganom(osborne_world())

@@ -78,7 +78,7 @@ SITL_READING_SIGMA_NT = 1.0
 SITL_MAP_SIGMA_NT = 0.3
 #: see :data:`SITL_MAP_SIGMA_NT`: map error per unit field gradient, m
 SITL_MAP_GRADIENT_ERROR_M = 6.5
-#: see :data:`SITL_MAP_SIGMA_NT`: the map error's correlation length (1/e), m (the matcher's default: 2 map nodes, 200 m)
+#: see :data:`SITL_MAP_SIGMA_NT`: the map error's correlation length (1/e), m (the default: 2 map nodes, 200 m)
 SITL_MAP_CORRELATION_M = 50.0
 
 #: the SITL's IMU as the bridge's filter should assume it. White noise from the Allan deviation at 0.1-1 s of the
