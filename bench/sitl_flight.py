@@ -16,14 +16,15 @@ its gyros miss the Earth's rate and its world is flat, 0.2-0.3 mg of apparent ac
 bench tells the bridge ``--grade tactical`` (1 deg/h, 1 mg), the grade that covers it; a MEMS autopilot on a real
 airframe is the bridge's default ``autopilot`` grade. ``--grade autopilot`` flies the same square with that model.
 Likewise its magnetometer (no noise; 0.5 nT about a 40 s mean in flight) and its world, made from the bridge's own
-survey (2.3-3.8 nT from the map over demeaned sections anywhere on the map): the bench tells the bridge
-``--reading-sigma 1`` and a matcher ``map_sigma`` of 4 nT (``SITL_READING_SIGMA_NT``, ``SITL_MAP_SIGMA_NT``; 0 = the
-bridge's defaults, 5 and 10 nT, for a real magnetometer on a real map). ``--keep`` keeps the work directory with
+survey (off the map by about 6.5 m times the field's gradient, ``bench/sitl_map_error.py``): the bench tells the
+bridge ``--reading-sigma 1`` and a matcher with a map error of 0.3 nT plus 6.5 m x |gradient| over 50 m
+(``SITL_READING_SIGMA_NT``, ``sitl_matcher`` in :mod:`magnav_ins.mavlink.sitl_flight`; ``--map-sigma`` sets the
+0.3 nT floor, 0 = the bridge's defaults, 5 and 10 nT uniform, for a real magnetometer on a real map). ``--keep`` keeps the work directory with
 ``bridge.tlog``, everything the bridge received, for :mod:`magnav_ins.mavlink.playback`.
 
 Run by hand (about 17 minutes for the default square: asked for 15 m/s, the SITL copter flies 10 m/s; the SITL runs
 in real time): ``python bench/sitl_flight.py --json [--output gps_input|odometry] [--home=LAT,LON] [--side-m 2000]
-[--altitude-m 80] [--speed-mps 15] [--warmup-m 150] [--grade ...] [--reading-sigma 1] [--map-sigma 4] [--keep]``
+[--altitude-m 80] [--speed-mps 15] [--warmup-m 150] [--grade ...] [--reading-sigma 1] [--map-sigma 0.3] [--keep]``
 """
 
 from __future__ import annotations
@@ -79,8 +80,8 @@ def main() -> None:
         "--map-sigma",
         type=float,
         default=SITL_MAP_SIGMA_NT,
-        help="the map's error against the SITL world the bridge's matcher is told, nT (default: measured over the "
-        "whole map; 0: the bridge's default matcher)",
+        help="the gradient-free floor of the map's error against the SITL world the bridge's matcher is told, nT "
+        "(default: measured over the whole map, with the gradient term; 0: the bridge's default matcher)",
     )
     ap.add_argument("--bridge-arg", action="append", default=[], help="extra magnav-ins bridge argument (repeatable)")
     ap.add_argument("--keep", action="store_true", help="keep the work directory (logs, track)")

@@ -60,12 +60,28 @@ SITL_GNSS_LAG_S = 0.07
 #: Rounded up. A real magnetometer on a real airframe is the bridge's default (5 nT).
 SITL_READING_SIGMA_NT = 1.0
 
-#: the map's error against the SITL's world, nT: world (every line at 50 m) minus ``builtin:osborne-magnetic``
-#: (flight lines at 100 m) along 300 straight sections at random places and headings over the whole map (seed 1;
-#: the flown routes play no part), demeaned: RMS 3.4 / 2.3 / 3.8 nT over 200 / 400 / 800 m (median 0.2-0.3 nT).
-#: Rounded up. A real map against the real field is worse (levelling, heights, time): the bridge's default (10 nT)
-#: is for that, and the map's own error layer (18-48 nT here, mostly level) for a map that knows it.
-SITL_MAP_SIGMA_NT = 4.0
+#: the map's error against the SITL's world: world (every line at 50 m) minus ``builtin:osborne-magnetic`` (flight
+#: lines at 100 m) along 2000 straight 400 m sections (a 40 s window at 10 m/s) at random places and headings over the
+#: whole map (the flown routes play no part; ``bench/sitl_map_error.py``, seeds 7 and 8), demeaned: RMS 0.11 / 0.27 /
+#: 2.6 / 8.4-9.1 nT at the 10 / 50 / 90 / 99th percentile. It follows the field's gradient (the 100 m map puts
+#: features a few metres off): RMS error over RMS gradient 2.8-5.1 m in every gradient bin from < 0.05 to > 3 nT/m.
+#: So the bridge is told ``sigma^2 = SITL_MAP_SIGMA_NT^2 + (SITL_MAP_GRADIENT_ERROR_M |grad|)^2`` (the likelihood
+#: matchers' ``map_gradient_error_m``) over ``SITL_MAP_CORRELATION_M`` (the demeaned error's autocorrelation: 0.6-0.67
+#: at 30 m, 0.17-0.27 at 60 m over 400-600 m sections). A uniform 4 nT (until 2026-12) over-stated the error 50-500
+#: times in variance on the smoother two thirds of the sections, so the fixes' covariance was wide (fix NEES
+#: 0.04-0.46 on runs 31-34) and the HPL crossed the alert limit. The gradient coefficient is set on the fixes, not
+#: the sections: the bridge's matcher without its 20 m floor on 400 random sections per seed
+#: (``bench/sitl_map_error.py --fixes 400 --matcher '{"min_fix_sigma_m": 0}'``) gives a mean fix NEES of 0.7-1.4
+#: with 6.5 m (seeds 1-4, prior 25-50 m, 10-15 m/s; the uniform 4 nT with the floor: 0.11-0.40) and 0.85-2.1 with
+#: 5 m (the sections' own calibration: their normalised mean square is 0.9 at 5 m, 0.47 at 6.5 m over 600 m; the
+#: fixes' errors have heavier tails). A real map against the real field is worse (levelling, heights, time): the
+#: bridge's default (10 nT uniform) is for that, and the map's own error layer (18-48 nT here, mostly level) for a
+#: map that knows it.
+SITL_MAP_SIGMA_NT = 0.3
+#: see :data:`SITL_MAP_SIGMA_NT`: map error per unit field gradient, m
+SITL_MAP_GRADIENT_ERROR_M = 6.5
+#: see :data:`SITL_MAP_SIGMA_NT`: the map error's correlation length (1/e), m (the default: 2 map nodes, 200 m)
+SITL_MAP_CORRELATION_M = 50.0
 
 #: the SITL's IMU as the bridge's filter should assume it. White noise from the Allan deviation at 0.1-1 s of the
 #: HIGHRES_IMU samples at rest (``bench/sitl_imu_noise.py``; 39 s on the ground before run 25's take-off: 5.6-7.3e-6
@@ -136,6 +152,20 @@ def sitl_params(output: str, speed_mps: float, sim_drift: bool) -> dict[str, flo
     return p
 
 
+def sitl_matcher(map_sigma_nt: float = SITL_MAP_SIGMA_NT) -> dict:
+    """The bridge's matcher (``DEFAULT_MATCHER``) with the map error model of this world (:data:`SITL_MAP_SIGMA_NT`):
+    ``map_sigma_nt`` the gradient-free floor (nT), the gradient term and the correlation length. The default's 20 m
+    floor on the fix sigma stays: the fixes' errors have heavier tails than the model (on random sections 1-2 % of
+    them beyond the 99.9 % quantile without the floor, 0.6-0.7 % with it, at a mean NEES of 0.45 instead of 0.7-1.4);
+    in the playbacks of the kept flights without it four successive fixes 40-47 m off with 18-23 m sigmas took run
+    33's filter to a NEES of 3.4 (2.0 with it).
+    """
+    from ..commands.bridge import DEFAULT_MATCHER
+
+    return {**DEFAULT_MATCHER, "map_sigma": map_sigma_nt, "map_gradient_error_m": SITL_MAP_GRADIENT_ERROR_M,
+            "map_correlation_m": SITL_MAP_CORRELATION_M}  # fmt: skip
+
+
 def bridge_command(plan: FlightPlan, port: int, summary: Path, track: Path) -> list[str]:
     """``magnav-ins bridge`` on SITL serial 1 (UDP ``port``) with the summary and track files."""
     exe = Path(sys.executable).with_name("magnav-ins")
@@ -148,9 +178,7 @@ def bridge_command(plan: FlightPlan, port: int, summary: Path, track: Path) -> l
     if plan.reading_sigma_nt is not None:
         cmd += ["--reading-sigma", f"{plan.reading_sigma_nt:g}"]
     if plan.map_sigma_nt is not None:  # the bridge's matcher, with the map's error against this world
-        from ..commands.bridge import DEFAULT_MATCHER
-
-        cmd += ["--matcher", json.dumps({**DEFAULT_MATCHER, "map_sigma": plan.map_sigma_nt})]
+        cmd += ["--matcher", json.dumps(sitl_matcher(plan.map_sigma_nt))]
     if plan.keep:  # what the bridge received, for a replay through the real Bridge (mavlink/playback.py)
         cmd += ["--record-tlog", str(summary.with_name("bridge.tlog"))]
     cmd += ["--gps-id", "1"] if plan.output == "gps_input" else ["--ekf-source-set", "2"]

@@ -40,7 +40,11 @@ covariance and ``T = I - gamma / K 1 1'`` as the scan's transform. A single read
 
 What the fix covariance contains (issue 13; :mod:`.map_error`). The scan's likelihood uses the variance
 ``sigma_reading^2 + sigma_map^2`` (the map's error layer at the section, or ``map_sigma``, or the stated default)
-plus the node error ``|grad|^2 step^2 / 12``, as if the readings were independent. They are not: the map error is
+plus the node error ``|grad|^2 step^2 / 12``, as if the readings were independent. With ``map_gradient_error_m``
+``c`` (m, 0 by default) the map error at each reading is ``sqrt(sigma_map^2 + (c |grad m|)^2)``: a map gridded from
+other or fewer lines than the field puts its features a few metres off, an error that follows the gradient (the SITL's
+world against ``builtin:osborne-magnetic``: :mod:`magnav_ins.mavlink.sitl_flight`); in the scan's variance with the
+section's mean ``|grad|^2`` at the INS positions, in the honest covariance with the gradient at the fix. They are not: the map error is
 correlated over its correlation length, and the INS track the section is slid along drifts. So before its
 moments are taken the surface is divided by a temperature: the sandwich factor (White 1982) of the section's full
 residual covariance ``sigma_s^2 I + D C D + node error + sigma_b^2 1 1' + G P_drift G'`` (map error correlation ``C``, INS drift
@@ -58,7 +62,8 @@ without map values holds the hypothesis "the field here is unknown", with the li
 map's own field statistics (:func:`~.map_error.off_map_loglik`); when those nodes hold more than
 ``max_off_map_mass`` of the (untempered) likelihood, "no fix: off the map".
 
-"No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
+"No fix" (with the reason) for: NaN readings, a section whose INS track spans less than ``min_section_m``, off the
+map, a flat map (feature variability, Wang eq. 14, below
 ``min_variability`` times the sensor sigma), an ambiguous likelihood (its 99.9 % region falls into several parts and
 those other than the best one's hold more than ``ambiguity_mass``; the reason gives the mass and the distance), a
 likelihood whose peak region reaches scanned positions without map values ("map edge": cut off by the map's edge,
@@ -201,8 +206,11 @@ class LikelihoodMatcher:
     ``window_growth`` (widenings of the search window); ``edge_fix`` (on by default since 2026-12) and ``edge_fix_sigma_m`` (m): when the
     likelihood still reaches the edge of the widest window, the fix it holds with the prior (:meth:`prior_fix`)
     rather than none; ``off_map`` "impossible" | "unknown" and
-    ``max_off_map_mass``; ``level_sigma`` the level offset's prior 1-sigma (None = the map's, 0 = none) (module
-    docstring). The module docstring says what the covariance contains.
+    ``max_off_map_mass``; ``level_sigma`` the level offset's prior 1-sigma (None = the map's, 0 = none);
+    ``map_gradient_error_m`` the map error per unit field gradient (m; 0 = none) (module docstring);
+    ``min_section_m``: no fix when the window's INS track spans less than this (m; 0 = any): a hovering or descending
+    vehicle's demeaned section holds nothing but the map's gradient at one place, and its likelihood pulled the
+    fix with a prior-sized covariance (the SITL's landings, issue 17). The module docstring says what the covariance contains.
 
     The matcher remembers the time of the last reading of its last issued fix (``count_overlap``): one instance
     serves one stream of windows (a window whose last reading is not newer starts a new stream)."""
@@ -239,6 +247,8 @@ class LikelihoodMatcher:
     off_map: str = "impossible"
     max_off_map_mass: float = 0.5
     level_sigma: float | None = None
+    map_gradient_error_m: float = 0.0
+    min_section_m: float = 0.0
     name: str = ""
     _last_fix_t: float = field(default=-np.inf, init=False, repr=False, compare=False)
 
@@ -258,12 +268,14 @@ class LikelihoodMatcher:
                 self.peak_threshold,
                 self.min_fix_sigma_m,
                 self.window_floor_cells,
+                self.map_gradient_error_m,
+                self.min_section_m,
             )
             < 0
         ):
             raise ConfigError(
                 "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m, "
-                "window_floor_cells >= 0"
+                "window_floor_cells, map_gradient_error_m, min_section_m >= 0"
             )
         if not self.edge_fix_sigma_m > 0:
             raise ConfigError(f"likelihood matcher 'edge_fix_sigma_m': expected > 0, got {self.edge_fix_sigma_m!r}")
@@ -293,6 +305,12 @@ class LikelihoodMatcher:
         h_last = float(h[-1]) if np.isfinite(h[-1]) else None
         frame = make_frame(fmap, float(lat[-1]), float(lon[-1]))
         dn, de = frame.to_ne(lat, lon)
+        if self.min_section_m > 0:
+            span = float(np.max(np.hypot(dn - dn[-1], de - de[-1]))) if dn.size else 0.0
+            if span < self.min_section_m:
+                return (
+                    f"section too short: the INS track spans {span:.0f} m, below {self.min_section_m:g} m (hovering?)"
+                )
         if self.distance_step_m is not None and len(z) > 1:
             dn, de, z = distance_sample(dn, de, z, self.distance_step_m)
         step0 = self.resolution_m if self.resolution_m else spacing_of(fmap, 1.0)
@@ -311,6 +329,8 @@ class LikelihoodMatcher:
         nz = len(z)
         err = resolve_map_error(fmap, self.map_sigma, self.map_correlation_m)
         sm = err.sigma_at(lat, lon)
+        if self.map_gradient_error_m > 0:  # the map error that follows the field's gradient (module docstring)
+            sm = self._gradient_error(sm, _map_gradient2(fmap, lat, lon))
         s2_base = float(rd.sigma) ** 2 + float(np.mean(sm**2))  # sensor + map error variance (map_error.py)
         t_sec = np.asarray(rd.t, dtype=float)[good]
         drift = ins_drift_rate(t_sec, cov[good] if cov.ndim == 3 else None) if self.track_error else np.zeros(2)
@@ -730,7 +750,7 @@ class LikelihoodMatcher:
         ) / (2 * h)
         jac = np.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0)
         lat, lon = frame.to_latlon(pn, pe)
-        sm = sec.error.sigma_at(lat, lon)
+        sm = self._gradient_error(sec.error.sigma_at(lat, lon), np.sum(jac**2, axis=2).mean(axis=1))
         diff = self.difference and k > 1
         lv = sec.level_var
         node_var = max(surf.sigma2 / (2.0 if diff else 1.0) - sec.s2_base - (lv if k == 1 else 0.0), 0.0)
@@ -768,6 +788,15 @@ class LikelihoodMatcher:
             return 1.0
         new = int(np.sum(t > last))
         return float(t.size) / max(new, 1)
+
+    def _gradient_error(self, sigma_map: FloatArray, grad2: FloatArray) -> FloatArray:
+        """Per-reading map error 1-sigma (map unit) with the gradient term: ``sqrt(sigma_map^2 + (c |grad|)^2)``,
+        ``c = map_gradient_error_m``, ``grad2`` (K,) the squared map gradient (unit^2/m^2) at the readings (module
+        docstring); ``sigma_map`` unchanged when ``c`` is 0."""
+        if not self.map_gradient_error_m > 0:
+            return sigma_map
+        g2 = np.nan_to_num(np.asarray(grad2, dtype=float), nan=0.0, posinf=0.0)
+        return np.sqrt(np.asarray(sigma_map, dtype=float) ** 2 + self.map_gradient_error_m**2 * g2)
 
     def _issued(self, surf: Surface) -> None:
         sec = surf.section
@@ -953,6 +982,17 @@ def _gradient_rms(
     g2 = np.sum(g.reshape(len(g), -1) ** 2, axis=1)
     g2 = g2[np.isfinite(g2)]
     return float(np.sqrt(g2.mean())) if g2.size else float("nan")
+
+
+def _map_gradient2(fmap: FieldMap, lat: FloatArray, lon: FloatArray) -> FloatArray:
+    """Squared horizontal map gradient (unit^2/m^2, mean over the field's components) at ``(lat, lon)`` rad (K,);
+    0 where the map has none (NaN, off the map, no ``gradient_ne``)."""
+    try:
+        g = np.asarray(fmap.gradient_ne(lat, lon), float)  # type: ignore[attr-defined]
+    except (ValueError, AttributeError, TypeError):
+        return np.zeros(np.size(lat))
+    g2 = np.sum(g.reshape(np.size(lat), -1, 2) ** 2, axis=2).mean(axis=1)
+    return np.nan_to_num(g2, nan=0.0, posinf=0.0)
 
 
 def _is_track(fmap: FieldMap) -> bool:
