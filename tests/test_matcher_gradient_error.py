@@ -92,28 +92,3 @@ def test_sitl_bridge_is_told_the_measured_map_error_model(tmp_path):
     assert matcher["map_gradient_error_m"] == SITL_MAP_GRADIENT_ERROR_M > 0
     assert matcher["map_correlation_m"] == SITL_MAP_CORRELATION_M > 0
     build_matcher(matcher)  # a valid configuration
-
-
-def test_hovering_section_gives_no_fix_with_min_section(displaced_map):
-    """A vehicle hovering (or landing) for the whole window: the demeaned section holds no position information;
-    with ``min_section_m`` (the bridge's default) the matcher says so instead of issuing a fix."""
-    from matcher_scenarios import make_window
-
-    scenario, fmap = displaced_map
-    rng = np.random.default_rng(4)
-    k = 40
-    true_ne = np.tile([700.0, 800.0], (k, 1)) + rng.normal(0.0, 0.3, (k, 2))  # hovering: 0.3 m jitter
-    lat, lon = fmap.from_local(true_ne[:, 0], true_ne[:, 1])
-    z = np.asarray(scenario.truth.value(lat, lon), float) + rng.normal(0.0, 2.0, k)
-    P = np.eye(2) * 30.0**2
-    w = make_window(fmap, np.arange(k, dtype=float), true_ne, z, 2.0, KIND_TF, np.array([40.0, -30.0]), P, np.zeros(2))
-    config = {"kind": "ml", "demean": True, "map_sigma": 0.5, "map_gradient_error_m": SHIFT_M}
-    fix = build_matcher({**config, "min_section_m": 100.0}).match(w, fmap)
-    assert not fix.available and fix.reason.startswith("section too short"), fix.reason
-    moving = true_ne[-1] + np.column_stack([np.arange(k) - (k - 1), np.zeros(k)]) * 10.0  # 390 m north
-    lat, lon = fmap.from_local(moving[:, 0], moving[:, 1])
-    z = np.asarray(scenario.truth.value(lat, lon), float) + rng.normal(0.0, 2.0, k)
-    w = make_window(fmap, np.arange(k, dtype=float), moving, z, 2.0, KIND_TF, np.array([40.0, -30.0]), P, np.zeros(2))
-    assert not build_matcher({**config, "min_section_m": 100.0}).match(w, fmap).reason.startswith("section too short")
-    with pytest.raises(ConfigError):
-        build_matcher({"kind": "ml", "min_section_m": -1.0})

@@ -158,9 +158,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 #: inside one 100 m cell and every attempt was refused as "flat map" (the SITL flights, README). ``edge_fix``: a
 #: likelihood that reaches the edge of the widest window (a smooth field along the track: the SITL square's west leg)
 #: gives the fix it holds across the track, with the prior's position and no information along it, not nothing.
-#: ``min_section_m``: no fix from a window whose INS track spans less than one 100 m map cell (a copter hovering or
-#: landing: its demeaned section holds nothing but the map's gradient at one place; on the SITL landings such fixes
-#: came with the prior's covariance 100 m from the truth, NEES 3-9, issue 17). ``edge_fix_sigma_m`` 500: an edge fix
+#: (A window whose INS track spans less than a map cell, a copter hovering or landing, is not matched at all:
+#: :class:`magnav_ins.pipeline.Pipeline`'s ``min_section_m``.) ``edge_fix_sigma_m`` 500: an edge fix
 #: says nothing in a direction where the likelihood is wider than 500 m (under 4 % of a 100 m prior's information);
 #: with the matcher's 10 km the playbacks of the kept SITL flights had such fixes 0.2-5.4 km off (sigma 0.5-1.9 km)
 #: in 9 of 15 runs, and one sent the protection level to 9 km (issue 17).
@@ -173,7 +172,6 @@ DEFAULT_MATCHER = {
     "min_variability": 0.3,
     "window_floor_cells": 2.0,
     "edge_fix": True,
-    "min_section_m": 100.0,
     "edge_fix_sigma_m": 500.0,
 }
 DEFAULT_MATCHER_TEXT = ", ".join(f"{k}={v}" for k, v in DEFAULT_MATCHER.items())

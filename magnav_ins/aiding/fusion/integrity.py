@@ -59,7 +59,7 @@ Horizontal protection level (:meth:`FaultMonitor.hpl`, m), at ``integrity_risk``
 * ``d`` the doubt of unresolved exclusions: while fixes excluded since the last accepted one are unexplained, the
   filter may be the one that is wrong, by up to the residual: ``d = max_i |r_i| + K sqrt(lambda_max(R_i +
   P_ne))``, over the directions in which the fix holds information: a direction of ``R_i`` whose variance is over
-  :data:`UNINFORMATIVE_RATIO` times the filter's largest is dropped from ``r_i`` and ``R_i`` (the likelihood
+  :data:`UNINFORMATIVE_RATIO` (10) times the filter's largest is dropped from ``r_i`` and ``R_i`` (the likelihood
   matcher's edge fix states the cross-track position and a 10 km sigma along the track; counted whole, one such
   fix excluded on SITL run 38's west leg made the HPL 51 km for 10 s, and the autopilot landed on "EKF variance").
   The next accepted fix resolves them (they were faults); a recovery resolves them the other way.
@@ -102,9 +102,10 @@ def integrity_factor(integrity_risk: float) -> float:
     return math.sqrt(-2.0 * math.log(integrity_risk))
 
 
-#: a fix direction whose variance exceeds this many times the filter's largest horizontal variance holds no
-#: information (the likelihood matcher's edge fix: 10 km along the track); the doubt of an exclusion leaves it out
-UNINFORMATIVE_RATIO = 100.0
+#: a fix direction whose variance exceeds this many times the filter's largest horizontal variance holds under a
+#: tenth of the filter's information there (the likelihood matcher's edge fix: 0.5-10 km along the track, against a
+#: filter sigma of 20-90 m on the SITL flights); the doubt of an exclusion leaves it out
+UNINFORMATIVE_RATIO = 10.0
 
 
 def informative_part(r: ArrayLike, R: ArrayLike, p_max: float) -> tuple[FloatArray, FloatArray]:

@@ -62,8 +62,7 @@ without map values holds the hypothesis "the field here is unknown", with the li
 map's own field statistics (:func:`~.map_error.off_map_loglik`); when those nodes hold more than
 ``max_off_map_mass`` of the (untempered) likelihood, "no fix: off the map".
 
-"No fix" (with the reason) for: NaN readings, a section whose INS track spans less than ``min_section_m``, off the
-map, a flat map (feature variability, Wang eq. 14, below
+"No fix" (with the reason) for: NaN readings, off the map, a flat map (feature variability, Wang eq. 14, below
 ``min_variability`` times the sensor sigma), an ambiguous likelihood (its 99.9 % region falls into several parts and
 those other than the best one's hold more than ``ambiguity_mass``; the reason gives the mass and the distance), a
 likelihood whose peak region reaches scanned positions without map values ("map edge": cut off by the map's edge,
@@ -207,10 +206,9 @@ class LikelihoodMatcher:
     likelihood still reaches the edge of the widest window, the fix it holds with the prior (:meth:`prior_fix`)
     rather than none; ``off_map`` "impossible" | "unknown" and
     ``max_off_map_mass``; ``level_sigma`` the level offset's prior 1-sigma (None = the map's, 0 = none);
-    ``map_gradient_error_m`` the map error per unit field gradient (m; 0 = none) (module docstring);
-    ``min_section_m``: no fix when the window's INS track spans less than this (m; 0 = any): a hovering or descending
-    vehicle's demeaned section holds nothing but the map's gradient at one place, and its likelihood pulled the
-    fix with a prior-sized covariance (the SITL's landings, issue 17). The module docstring says what the covariance contains.
+    ``map_gradient_error_m`` the map error per unit field gradient (m; 0 = none) (module docstring). A window whose
+    INS track is shorter than a map cell (a hovering or landing vehicle) never reaches the matcher
+    (:class:`~magnav_ins.pipeline.Pipeline`'s ``min_section_m``). The module docstring says what the covariance contains.
 
     The matcher remembers the time of the last reading of its last issued fix (``count_overlap``): one instance
     serves one stream of windows (a window whose last reading is not newer starts a new stream)."""
@@ -248,7 +246,6 @@ class LikelihoodMatcher:
     max_off_map_mass: float = 0.5
     level_sigma: float | None = None
     map_gradient_error_m: float = 0.0
-    min_section_m: float = 0.0
     name: str = ""
     _last_fix_t: float = field(default=-np.inf, init=False, repr=False, compare=False)
 
@@ -269,13 +266,12 @@ class LikelihoodMatcher:
                 self.min_fix_sigma_m,
                 self.window_floor_cells,
                 self.map_gradient_error_m,
-                self.min_section_m,
             )
             < 0
         ):
             raise ConfigError(
                 "likelihood matcher: min_distance_m, map_sigma, min_variability, peak_threshold, min_fix_sigma_m, "
-                "window_floor_cells, map_gradient_error_m, min_section_m >= 0"
+                "window_floor_cells, map_gradient_error_m >= 0"
             )
         if not self.edge_fix_sigma_m > 0:
             raise ConfigError(f"likelihood matcher 'edge_fix_sigma_m': expected > 0, got {self.edge_fix_sigma_m!r}")
@@ -305,12 +301,6 @@ class LikelihoodMatcher:
         h_last = float(h[-1]) if np.isfinite(h[-1]) else None
         frame = make_frame(fmap, float(lat[-1]), float(lon[-1]))
         dn, de = frame.to_ne(lat, lon)
-        if self.min_section_m > 0:
-            span = float(np.max(np.hypot(dn - dn[-1], de - de[-1]))) if dn.size else 0.0
-            if span < self.min_section_m:
-                return (
-                    f"section too short: the INS track spans {span:.0f} m, below {self.min_section_m:g} m (hovering?)"
-                )
         if self.distance_step_m is not None and len(z) > 1:
             dn, de, z = distance_sample(dn, de, z, self.distance_step_m)
         step0 = self.resolution_m if self.resolution_m else spacing_of(fmap, 1.0)
