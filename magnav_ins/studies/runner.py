@@ -344,7 +344,10 @@ def _execute_dask(
         raise ConfigError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({exc})") from None
     futs: list[Any] = []
     try:
-        [model_f] = client.scatter([model], broadcast=True)
+        # hash=False: a key of this study's own; the default content hash gives two studies of one model on one
+        # cluster the same key, and when the first client released it the second's runs were cancelled ("lost
+        # dependencies", seen once in the test suite under load)
+        [model_f] = client.scatter([model], broadcast=True, hash=False)
         futs = [client.submit(_run_task, model_f, i, ss, max_samples, pure=False) for i, ss in enumerate(seeds)]
         index = {f.key: i for i, f in enumerate(futs)}
         for fut in dask_completed(futs):
