@@ -18,7 +18,7 @@ Loop (Wang et al. 2022, seed 001, Fig. 1 / sec. 3.3; Storms 2009, seed 004, sec.
   map cell) is not matched: "no fix: section too short" (a hovering, landing or parked vehicle: its readings repeat
   one value, which fits every place where the map is flat along the few metres the INS drifts, so a profile matcher
   would issue a narrow fix anywhere; measured on the SITL flight of issue 17, fixes from the descent and the ground
-  were 120-780 m off with 25-35 m sigmas). When a fix is accepted, the stored window positions are shifted by the correction
+  were 120-345 m off with 25-35 m sigmas). When a fix is accepted, the stored window positions are shifted by the correction
   applied at the fix time, so the window stays one rigid INS track.
 * Every fix (also "no fix") goes to ``fuser.correct`` (its :class:`Innovation` records acceptance and reason), with
   the optional height aid ``height_aid(t) -> (h_m, sigma_m)`` (e.g. a barometer). A batch matcher in retrodiction

@@ -345,8 +345,8 @@ def _execute_dask(
     futs: list[Any] = []
     try:
         # hash=False: a key of this study's own; the default content hash gives two studies of one model on one
-        # cluster the same key, and when the first client released it the second's runs were cancelled ("lost
-        # dependencies", seen once in the test suite under load)
+        # cluster the same key, the likely cause (not proven) of the second study's runs being cancelled with "lost
+        # dependencies", seen once in the test suite under load
         [model_f] = client.scatter([model], broadcast=True, hash=False)
         futs = [client.submit(_run_task, model_f, i, ss, max_samples, pure=False) for i, ss in enumerate(seeds)]
         index = {f.key: i for i, f in enumerate(futs)}
