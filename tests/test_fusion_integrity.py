@@ -18,7 +18,7 @@ import pytest
 from test_fusion_contract import H_SIGMA, noise, run_inputs, truth
 
 from magnav_ins.aiding.fusion import make_fuser
-from magnav_ins.aiding.fusion.integrity import FaultMonitor, hpl_fault_free, integrity_factor
+from magnav_ins.aiding.fusion.integrity import FaultMonitor, exclusion_doubt, hpl_fault_free, integrity_factor
 from magnav_ins.core.frames import meters_to_latlon
 from magnav_ins.core.types import LAYOUT_15, NavEstimate
 from magnav_ins.ins.error_model import nav_error
@@ -279,23 +279,35 @@ def test_ukf_fault_margin_bounds_what_an_undetected_fix_bias_leaves() -> None:
     np.testing.assert_allclose(m0, m1, rtol=0.02, atol=1e-6)
 
 
-def test_doubt_of_an_excluded_edge_fix_counts_only_its_informative_direction() -> None:
-    """An edge fix (the likelihood matcher's ``prior_fix``: cross-track position, 10 km sigma along the track) that
-    the gate excludes leaves a doubt of its cross-track residual, not of its 10 km (SITL run 38: HPL 51 km for 10 s,
-    then the autopilot's EKF failsafe). A fix informative in both directions keeps the whole doubt."""
-    P = np.eye(2) * 30.0**2
+def test_doubt_of_an_exclusion_is_the_correction_the_fix_asks_of_the_least_inflated_filter() -> None:
+    """The doubt an excluded fix leaves (integrity module docstring, ``d``), against closed forms: for isotropic
+    ``P = p I`` and ``R = rho I`` the least inflation making a residual ``r`` consistent is ``s p = |r|^2 / T - rho``
+    and the doubt ``G |r| + K sqrt(s p rho / (s p + rho))`` with ``G = s p / (s p + rho)``; a fix the window test
+    excluded inside the gate (``s = 1``) with ``R = P`` asks for half its residual. An edge fix (cross-track
+    position, 10 km sigma along the track) leaves a doubt of its cross-track residual's order, not of its 10 km (SITL
+    run 38: the HPL was 51 km for 10 s, then the autopilot's EKF failsafe)."""
+    K = integrity_factor(1e-3)
+    p, rho = 30.0**2, 20.0**2
+    P, R = np.eye(2) * p, np.eye(2) * rho
+    r = np.array([400.0, 3000.0])
+    m = FaultMonitor(0.9999)
+    T = m.gate_threshold(2)
+    assert m.assess(0.0, r, P + R, R, P).action == "reject"
+    sp = float(r @ r) / T - rho
+    G = sp / (sp + rho)
+    assert m.hpl(P) == pytest.approx(G * math.hypot(*r) + K * math.sqrt(sp * rho / (sp + rho)), rel=1e-6)
+    assert math.hypot(*r) < m.hpl(P) < math.hypot(*r) + K * 20.0  # a precise fix far off: its whole residual
+    # inside the gate (the window test's exclusion): half the residual when R = P, and K sigmas of P / 2
+    r_in = np.array([60.0, -20.0])
+    assert float(r_in @ np.linalg.solve(2 * P, r_in)) < T
+    assert exclusion_doubt(r_in, P, P, T, K) == pytest.approx(0.5 * math.hypot(*r_in) + K * math.sqrt(p / 2), rel=1e-9)
+    # the edge fix: 400 m across (excluded), 3 km along where it says nothing
     heading = math.radians(30.0)  # along-track unit vector (north, east)
     u = np.array([math.cos(heading), math.sin(heading)])
     n = np.array([-u[1], u[0]])
-    R_edge = 1e4**2 * np.outer(u, u) + 20.0**2 * np.outer(n, n)
-    r = 400.0 * n + 3000.0 * u  # 400 m across (excluded), 3 km along: no information there
-    m = FaultMonitor(0.9999)
-    v = m.assess(0.0, r, P + R_edge, R_edge, P)
-    assert v.action == "reject"
-    K = integrity_factor(1e-3)
-    expected = 400.0 + K * math.sqrt(30.0**2 + 20.0**2)  # the cross-track residual, the fix's and filter's sigmas
-    assert m.hpl(P) == pytest.approx(expected, rel=1e-6)
+    R_edge = 1e4**2 * np.outer(u, u) + rho * np.outer(n, n)
     m2 = FaultMonitor(0.9999)
-    R = np.eye(2) * 20.0**2
-    assert m2.assess(0.0, r, P + R, R, P).action == "reject"
-    assert m2.hpl(P) == pytest.approx(math.hypot(400.0, 3000.0) + K * math.sqrt(30.0**2 + 20.0**2), rel=1e-6)
+    assert m2.assess(0.0, 400.0 * n + 3000.0 * u, P + R_edge, R_edge, P).action == "reject"
+    assert 400.0 < m2.hpl(P) < 1000.0
+    # a fix 20 km vague along the track and in the gate across it leaves no more than the fault-free level
+    assert exclusion_doubt(40.0 * n + 3000.0 * u, R_edge, P, T, K) < K * 30.0 + 40.0

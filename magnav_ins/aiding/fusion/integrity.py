@@ -57,11 +57,20 @@ Horizontal protection level (:meth:`FaultMonitor.hpl`, m), at ``integrity_risk``
   the factor graph's rule, :meth:`FaultMonitor.margin`) the margin at a fix was scaled with the filter's horizontal
   sigma between fixes, process noise included, and on the SITL flights the HPL reached 7.6-10 sigmas.
 * ``d`` the doubt of unresolved exclusions: while fixes excluded since the last accepted one are unexplained, the
-  filter may be the one that is wrong, by up to the residual: ``d = max_i |r_i| + K sqrt(lambda_max(R_i +
-  P_ne))``, over the directions in which the fix holds information: a direction of ``R_i`` whose variance is over
-  :data:`UNINFORMATIVE_RATIO` (10) times the filter's largest is dropped from ``r_i`` and ``R_i`` (the likelihood
-  matcher's edge fix states the cross-track position and a 10 km sigma along the track; counted whole, one such
-  fix excluded on SITL run 38's west leg made the HPL 51 km for 10 s, and the autopilot landed on "EKF variance").
+  filter may be the one that is wrong (:func:`exclusion_doubt`). For each such fix (residual ``r`` against the
+  filter, covariance ``R``; the filter's horizontal covariance ``P`` now), the filter is taken to be
+  over-confident by the least factor ``s >= 1`` that makes the fix consistent: ``r^T (s P + R)^-1 r`` at the
+  gate's threshold (``s = 1`` for a fix inside the gate, excluded by the window test). If that fix were right, the
+  filter's error would be the Kalman correction the fix asks for, ``G r`` with ``G = s P (s P + R)^-1``, give or
+  take the combined covariance ``(P_s^-1 + R^-1)^-1``: ``d = max_i |G_i r_i| + K sqrt(lambda_max((P_s^-1 +
+  R_i^-1)^-1))``. A precise fix far off (``R << s P``) asks for nearly its whole residual, ``d ~ |r| + K
+  sigma_R``, as when the filter has lost track; a direction in which the fix is vague against the filter (the
+  likelihood matcher's edge fix: cross-track position, 0.5-10 km along the track) or a fix that only the window
+  test excluded asks for little. Before, the doubt was that worst case in every direction with a tenth of the
+  filter's information or more,
+  ``|r| + K sqrt(lambda_max(R + P))``: on SITL run 38 (a 10 km edge fix) the HPL was 51 km for 10 s and the
+  autopilot landed on "EKF variance"; on run 40, played back, three fixes the window test excluded (each inside
+  the gate, 160-500 m sigma along the track) left doubts of 283-772 m, where this rule gives 194-223 m.
   The next accepted fix resolves them (they were faults); a recovery resolves them the other way.
 
 No peer library (MagNav.jl, pyins, navlie, Stone Soup) provides FDE or protection levels for map-matching fixes;
@@ -102,24 +111,36 @@ def integrity_factor(integrity_risk: float) -> float:
     return math.sqrt(-2.0 * math.log(integrity_risk))
 
 
-#: a fix direction whose variance exceeds this many times the filter's largest horizontal variance holds under a
-#: tenth of the filter's information there (the likelihood matcher's edge fix: 0.5-10 km along the track, against a
-#: filter sigma of 20-90 m on the SITL flights); the doubt of an exclusion leaves it out
-UNINFORMATIVE_RATIO = 10.0
+def exclusion_doubt(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float, k: float) -> float:
+    """The doubt (m) an excluded fix leaves on the filter's position (module docstring, ``d``): ``r`` its residual
+    against the filter (north, east; m), ``R`` its covariance and ``P`` the filter's horizontal covariance (m^2),
+    ``gate`` the 2-dof NIS threshold the filter's inflation is solved for, ``k`` the integrity factor. The filter is
+    inflated by the least ``s >= 1`` with ``r^T (s P + R)^-1 r <= gate``; the doubt is the correction the fix would
+    make to that filter plus ``k`` sigmas of their combination."""
+    r = np.asarray(r, float).reshape(2)
+    R = _psd(np.asarray(R, float))
+    P = _psd(np.asarray(P, float))
 
+    def nis_at(s: float) -> float:
+        return float(r @ np.linalg.solve(s * P + R + 1e-9 * np.eye(2), r))
 
-def informative_part(r: ArrayLike, R: ArrayLike, p_max: float) -> tuple[FloatArray, FloatArray]:
-    """The residual ``r`` (m) and covariance ``R`` (m^2) of a 2-D fix restricted to its informative directions:
-    eigen-directions of ``R`` with variance above ``UNINFORMATIVE_RATIO * p_max`` (``p_max`` the filter's largest
-    horizontal variance, m^2) are projected out of both (returned unchanged when there are none)."""
-    r = np.asarray(r, float)
-    R = np.asarray(R, float)
-    w, V = np.linalg.eigh(0.5 * (R + R.T))
-    keep = w <= UNINFORMATIVE_RATIO * max(p_max, 1e-12)
-    if keep.all():
-        return r, R
-    Vk = V[:, keep]
-    return Vk @ (Vk.T @ r), (Vk * w[keep]) @ Vk.T
+    s = 1.0
+    if math.isfinite(gate) and nis_at(1.0) > gate:
+        hi = 2.0
+        while nis_at(hi) > gate and hi < 1e12:
+            hi *= 2.0
+        lo = hi / 2.0 if hi > 2.0 else 1.0
+        for _ in range(60):  # bisection in log s: nis_at decreases with s
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if nis_at(mid) > gate else (lo, mid)
+            if hi / lo < 1.0 + 1e-9:
+                break
+        s = hi
+    Ps = s * P
+    S = Ps + R + 1e-9 * np.eye(2)
+    G = Ps @ np.linalg.inv(S)
+    C = Ps - G @ Ps  # (Ps^-1 + R^-1)^-1, without inverting a singular one
+    return float(np.hypot(*(G @ r))) + k * math.sqrt(lambda_max(C))
 
 
 def lambda_max(P: ArrayLike) -> float:
@@ -426,16 +447,12 @@ class FaultMonitor:
         return self._margin * math.sqrt(lambda_max(P_ne) / self._lam_ref)
 
     def doubt(self, P_ne: ArrayLike) -> float:
-        """The doubt term (m): the largest residual of the unresolved exclusions plus ``K`` sigmas of the fix and
-        the filter (0 without any)."""
+        """The doubt term (m): the largest :func:`exclusion_doubt` of the unresolved exclusions (0 without any)."""
         if not self._excluded:
             return 0.0
         P = np.asarray(P_ne, float)
-        out = 0.0
-        for e in self._excluded:
-            r, R = informative_part(e.r, e.R, lambda_max(P))
-            out = max(out, float(np.hypot(*r)) + self.k * math.sqrt(lambda_max(R + P)))
-        return out
+        gate = self._gate2.threshold if self.gate_probability is not None else math.inf
+        return max(exclusion_doubt(e.r, e.R, P, gate, self.k) for e in self._excluded)
 
     def hpl(self, P_ne: ArrayLike, margin_m: float | None = None) -> float:
         """The horizontal protection level (m) for the current horizontal covariance ``P_ne`` (m^2); NaN when
