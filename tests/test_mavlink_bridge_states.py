@@ -21,6 +21,7 @@ from magnav_ins.mavlink.link import (
     ImuMessage,
     LandedStateMessage,
     PositionMessage,
+    PressureMessage,
 )
 from magnav_ins.mavlink.online import make_online_pipeline
 
@@ -322,3 +323,41 @@ def test_the_warm_up_runs_one_full_matcher_window():
 
     warm_up(factory, fmap, lambda la, lo: float(np.asarray(fmap.value(la, lo)).reshape(-1)[0]))
     assert scans and scans[0] == 80
+
+
+@pytest.mark.parametrize("ground_offset_m", [0.5, 10.0], ids=["touched-down", "hovering-10m-up"])
+def test_landing_at_the_takeoff_height_stops_the_ins_although_the_autopilot_echoes_a_drifting_velocity(
+    ground_offset_m: float,
+):
+    """SITL run 42: after touchdown ArduCopter stayed "landing" for 130 s: its land detector waits for a still
+    velocity, and its velocity was the bridge's own (GPS_INPUT), 1.1 m/s off; the INS drifted 220 m on the ground.
+    Here: aligned on the ground, a flight (landed state "in_air", baro 30 m up), then "landing" with the baro back at
+    the takeoff height and the autopilot reporting 1.5 m/s: the bridge stops its INS and holds its position. A
+    vehicle hovering 10 m up while "landing" keeps its INS running."""
+    from magnav_ins.core import atmosphere as isa
+
+    init = (LAT, LON, 400.0, 0.4)
+    b, link, now = _bridge(BridgeConfig(output="gps_input", init=init, init_sigma_m=3.0, gnss_aiding=False))
+    for k in range(1, 3201):
+        t = 0.01 * k
+        now[0] = t
+        state = "on_ground" if t <= 10.0 else "in_air" if t <= 20.0 else "landing"
+        # baro height above the takeoff point: climb at 3 m/s to 30 m, descend at 3 m/s to the hover / ground
+        h_rel = float(np.interp(t, [10.0, 20.0, 20.0 + (30.0 - ground_offset_m) / 3.0], [0.0, 30.0, ground_offset_m]))
+        link.inbox.append(_at_rest(t))
+        if k % 5 == 0:
+            link.inbox.append(PressureMessage(t, float(isa.isa_pressure_pa(400.0 + h_rel)), 15.0, 1, 1))
+        if k % 20 == 0:
+            link.inbox += [
+                Heartbeat(1, 1, 2, ARDUPILOT),
+                LandedStateMessage(state, 1, 1),
+                PositionMessage(t, LAT, LON, 400.0 + h_rel, np.array([1.5, 0.0, 0.0]) * (t > 21.0), 1, 1),
+            ]
+        b.poll()
+        if t == pytest.approx(25.0):
+            assert b.health.state == "running" and b.health.pipeline_starts == 1  # in the air: the INS runs
+    if ground_offset_m < 2.0:
+        assert b.health.alignments == 1 and b.health.state == "aligning" and b.health.pipeline_starts == 1
+        assert "magnav: landed: INS stopped, position held" in b.health.history
+    else:
+        assert b.health.alignments == 0 and b.health.state == "running"

@@ -13,7 +13,12 @@ Life of a flight (the state is announced by STATUSTEXT once per change, rate-lim
 ``waiting_for_position``  IMU, but neither ``--init`` nor a healthy GNSS fix (GPS_RAW_INT fix type >= 3, enough
                           satellites, not 0 N 0 E): never a position from a zero or invalid message
 ``aligning``              on the ground and still (:mod:`.ground`): the position is held with its uncertainty, the
-                          velocity is zero, roll/pitch and the gyro biases are measured; no INS drift on the ground
+                          velocity is zero, roll/pitch and the gyro biases are measured; no INS drift on the ground.
+                          After a flight: the autopilot says "on ground", or it says "landing" and the baro height
+                          is back within ``touchdown_height_m`` of the height the bridge was aligned at (its land
+                          detector waits for a still velocity, and while the bridge is its position source that
+                          velocity is the bridge's own: on SITL run 42 a 1.1 m/s velocity error kept ArduCopter
+                          "landing" on the ground for 130 s while the INS drifted 220 m, until "EKF variance")
 ``running``               the INS runs: GNSS-aided while the autopilot's GNSS is healthy (its fixes estimate the INS
                           biases in flight), map-aided after it is lost or denied (fix lost, operator command,
                           ``deny_gnss_after_s``), without a jump
@@ -176,6 +181,7 @@ class BridgeConfig:
     send_while_gnss: str = "auto"
     ekf_source_set: int | None = None  # MAV_CMD_SET_EKF_SOURCE_SET to this set when the GNSS is lost (and 1 back)
     align: bool = True  # ground alignment while still
+    touchdown_height_m: float = 1.5  # "landing" within this of the aligned ground height (baro) counts as landed
     attitude_aid: bool = True  # the autopilot's attitude (ATTITUDE) as a measurement of the INS attitude
     attitude_interval_s: float = 1.0
     attitude_sigma_rad: tuple[float, float, float] = (0.01, 0.01, 0.035)  # tilt about N, E; heading
@@ -423,6 +429,7 @@ class Bridge:
         self._held: _Held | None = None
         self._carried_bias: tuple[np.ndarray, np.ndarray] | None = None  # gyro, accel (rad/s, m/s^2)
         self._flew = False  # the INS has run at least once (then re-alignment needs the landed state)
+        self._ground_h: float | None = None  # baro height (m) where the bridge last aligned on the ground
         self._sigma_ok = True
         self._h_sigma0 = config.init_sigma_m
         self._streams = self._stream_table()
@@ -727,8 +734,8 @@ class Bridge:
         self._reading(m)
         if self.config.align:
             self._still.push(m.t, m.gyro_b, m.accel_b)
-            landed = self._landed_now() == "on_ground"
-            if landed and not self._moving() and self._still.still(self._g_mps2):
+            landed = (self._landed_now() == "on_ground" and not self._moving()) or self._touched_down(m.t)
+            if landed and self._still.still(self._g_mps2):
                 self._enter_alignment()
 
     def _earth_sample(self, m: ImuMessage) -> ImuMessage | None:
@@ -785,10 +792,21 @@ class Bridge:
         g = self._gnss.last
         if self._gnss.healthy and g is not None and math.isfinite(g.speed) and g.speed > 0.5:
             return True
+        if self._flew and self._aiding() == "map":  # the autopilot's velocity is the bridge's own, sent to it
+            return False
         pos = self._last_position
         if pos is not None and self._clock() - pos[1] < 2.0 and float(np.hypot(*pos[0].v_n[:2])) > 0.5:
             return True
         return False
+
+    def _touched_down(self, t: float, hysteresis: float = 1.0) -> bool:
+        """The autopilot says "landing" and the baro height at IMU time ``t`` is within ``touchdown_height_m``
+        (times ``hysteresis``: 2 to stay aligned once down) of the height the bridge last aligned at on the ground
+        (module docstring, ``aligning``)."""
+        if self._landed_now() != "landing" or self._ground_h is None or self._baro is None:
+            return False
+        h = self._baro.height(t)
+        return h is not None and abs(h - self._ground_h) <= hysteresis * self.config.touchdown_height_m
 
     def _landed_now(self) -> str:
         """The autopilot's landed state if it said so in the last 3 s, else "unknown"."""
@@ -831,8 +849,11 @@ class Bridge:
             return
         # after a flight only the autopilot's landed state allows a new alignment (a hover can look still)
         flying = self._moving() or (self._flew and self._landed_now() != "on_ground")
-        still = c.align and not flying and self._still.still(self._g_mps2)
+        still = c.align and (not flying or self._touched_down(m.t, 2.0)) and self._still.still(self._g_mps2)
         if still:
+            on_ground = not self._flew or self._landed_now() == "on_ground"
+            if on_ground and self._baro is not None and self._baro.referenced:
+                self._ground_h = self._baro.height(m.t)
             for t, g, a in left:
                 self._aligner.push(t, g, a)
             ok = held.sigma_m <= c.max_sigma_m
