@@ -184,8 +184,8 @@ def test_pmht_honest_with_a_level_offset_only_with_the_level_term():
     with_level, n1 = _nees("pmht", {}, fmap, trial, 30)
     without, n2 = _nees("pmht", {"level_sigma": 0.0}, fmap, trial, 30)
     assert n1 >= 25 and n2 >= 15, (n1, n2)
-    assert 1.0 <= with_level <= 3.0, (with_level, without)  # measured 2.10 (30 fixes)
-    assert without > 5.0, (with_level, without)  # measured 9.4 (22 fixes)
+    assert 1.0 <= with_level <= 3.0, (with_level, without)  # measured 1.47 (gate 3.48 sigmas; 2.10 at 3)
+    assert without > 3.5, (with_level, without)  # measured 4.37 (9.4 with the 3-sigma gate: fewer fixes issued)
 
 
 def test_pmht_fixes_do_not_carry_the_ins_error():

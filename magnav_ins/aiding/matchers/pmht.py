@@ -131,12 +131,14 @@ default: the tempered likelihood's 99.9 % region touches the 3-sigma gate's bord
 the rule cost accuracy (full-suite seeds: RMS 3,847 -> 5,175 m, availability 53 -> 33 %) for its honesty (NEES
 3.4 -> 2.0); with the region cut to 0.5 nat below the peak (the likelihood's top reaching the border) availability
 was still 34 %, RMS 5,049 m.
-The gate's width (``gate_sigma = 3``: a box that misses a 2-D Gaussian truth with probability up to 5.4e-3) was
-tried at the protection level's integrity risk 1e-3 (issue 13): 3.48 prior sigmas, the smallest box holding the
-truth with that probability whatever the correlation, and 3.72, the box of the ``K = sqrt(-2 ln 1e-3)`` ellipse,
-repair the Rio run whose truth left the 3-sigma gate (full suite's seeds NEES 3.13 -> 1.86 / 1.78) but cost Rio
-accuracy (RMS 3,593 -> 3,781 / 3,969 m; ``--only rio`` seeds 3,195 -> 3,322 / 3,292 m) and raise the median run
-error on Rio and Osborne tactical: not the default (README, "PMHT's gate at the integrity risk").
+The gate's width, :data:`GATE_SIGMA` = 3.48 prior sigmas per axis: the smallest box that holds a 2-D Gaussian
+truth with probability ``1 - DEFAULT_INTEGRITY_RISK`` (1e-3, the protection level's) whatever its correlation
+(Sidak: a box of ``a`` sigmas misses at most ``1 - (2 Phi(a) - 1)^2``, equality for uncorrelated axes). The
+3-sigma box used before misses up to 5.4e-3: on Rio the truth left it in a map-fault zone (9160 at 65 m/s, case
+NEES 21.8 -> 3.4; suite's Rio NEES 3.13 -> 1.86), and a fix that cannot see the truth promises what the fuser's
+protection level does not cover. Cost, measured on five seed sets (README, "PMHT's gate at the integrity risk"):
+RMS +5.2 / +4.0 / +0.6 % on the three Rio sets, -4.9 % Osborne tactical, +2.6 % navigation, each inside its paired
+bootstrap's 5-95 % band; 3.72 (the box of the ``K = sqrt(-2 ln 1e-3)`` ellipse) costs more.
 
 Variances are capped at ``(10 max h)^2``; with ``partial_fixes = False`` a fix is also refused when its sigma
 exceeds the gate half-width in any direction (a fix along a straight line over a smooth map fixes the cross-track
@@ -154,6 +156,7 @@ reason "diverged"; the mean NIS is the fix ``score``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -161,10 +164,11 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
+from scipy.special import ndtri
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
-from ...core.types import Fix
+from ...core.types import DEFAULT_INTEGRITY_RISK, Fix
 from ...maps.variability import feature_variability_track
 from ._batch import (
     RIVAL_PEAK_RATIO,
@@ -422,6 +426,10 @@ def _em(
     return X, Ps, zbar, Rbar, it_used
 
 
+#: the search gate's half-width in prior sigmas per axis (module docstring, "Search gate"): the smallest box that
+#: holds a 2-D Gaussian truth with probability 1 - DEFAULT_INTEGRITY_RISK whatever its correlation (3.48 for 1e-3)
+GATE_SIGMA = float(ndtri((1.0 + math.sqrt(1.0 - DEFAULT_INTEGRITY_RISK)) / 2.0))
+
 # ---------------------------------------------------------------------------------------------- matcher
 #: the batch is run again on the readings less their estimated level when that level exceeds this many reading
 #: sigmas ``s`` (module docstring, "Level offset")
@@ -479,7 +487,7 @@ class PMHTMatcher:
     candidates: int = 20
     iterations: int = 15
     tolerance_m: float = 0.01
-    gate_sigma: float = 3.0
+    gate_sigma: float = GATE_SIGMA
     window_floor_m: float = 10.0
     value_gate: float | None = 3.0
     kinematics: str = "ins"
@@ -524,6 +532,7 @@ class PMHTMatcher:
     #: ``wang`` is PMHT-MM as Wang et al. (2022) publish it (module docstring, "The wang preset")
     PRESETS: ClassVar[dict[str, dict[str, Any]]] = {
         "wang": {
+            "gate_sigma": 3.0,  # the paper gives no width; 3 sigmas, the default before GATE_SIGMA
             "kinematics": "cv",
             "use_prior": True,
             "pda_spread": False,
