@@ -848,8 +848,13 @@ class Bridge:
         if not self._still.full():
             return
         # after a flight only the autopilot's landed state allows a new alignment (a hover can look still)
-        flying = self._moving() or (self._flew and self._landed_now() != "on_ground")
-        still = c.align and (not flying or self._touched_down(m.t, 2.0)) and self._still.still(self._g_mps2)
+        # "landing" at the takeoff height is on the ground too (module docstring): a touchdown's jolt or the motors
+        # spinning down is no reason to start the INS again (SITL run 43: restarted 3 s after touchdown)
+        touched = self._touched_down(m.t, 2.0)
+        flying = not touched and (self._moving() or (self._flew and self._landed_now() != "on_ground"))
+        if c.align and touched and not self._still.still(self._g_mps2):
+            return
+        still = c.align and not flying and self._still.still(self._g_mps2)
         if still:
             on_ground = not self._flew or self._landed_now() == "on_ground"
             if on_ground and self._baro is not None and self._baro.referenced:
