@@ -360,5 +360,8 @@ def test_landing_at_the_takeoff_height_stops_the_ins_although_the_autopilot_echo
     if ground_offset_m < 2.0:
         assert b.health.alignments == 1 and b.health.state == "aligning" and b.health.pipeline_starts == 1
         assert "magnav: landed: INS stopped, position held" in b.health.history
+        # held: the velocity is zero and sent with its own sigma, not the in-flight floor (sigma_h / 20 s)
+        last = link.gps_inputs()[-1]
+        assert np.allclose(last["v_n"][:2], 0.0) and last["sigma_speed"] <= 0.05 < last["sigma_h"] / 20.0
     else:
         assert b.health.alignments == 0 and b.health.state == "running"

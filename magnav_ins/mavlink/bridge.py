@@ -1177,7 +1177,14 @@ class Bridge:
         by at most 0.4 m/s (its velocity gate is 5 x 0.3 m/s). The floor stops at :data:`MAX_SPEED_FLOOR_MPS`:
         EKF3 flags "GPS glitching" (Copter: "GPS Glitch or Compass error", run 31) while the speed accuracy it
         is sent, low-passed and peak-held, is above 1.5 m/s (``calcGpsGoodForFlight``); above 24 m of sigma the
-        time constant is then ``sigma_h / 1.2 m/s`` (33 s at 40 m, still 3-4 times shorter than before)."""
+        time constant is then ``sigma_h / 1.2 m/s`` (33 s at 40 m, still 3-4 times shorter than before).
+
+        While aligning (still on the ground, the position held: no steps to smooth) the velocity's own sigma: after
+        a touchdown EKF3 must learn at once that the vehicle stopped. At 1.2 m/s it took 20 s to take up the step
+        from the INS's last velocity to zero (SITL run 43, 0.9 m/s), and ArduCopter's land detector, which needs a
+        still vehicle and no lean request from its position loop, never fired."""
+        if self.health.state == "aligning":
+            return s.sigma_speed
         return max(s.sigma_speed, min(s.sigma_h / self.config.follow_s, MAX_SPEED_FLOOR_MPS))
 
     def _send_while_gnss(self) -> bool:
