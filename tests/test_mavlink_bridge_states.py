@@ -365,3 +365,28 @@ def test_landing_at_the_takeoff_height_stops_the_ins_although_the_autopilot_echo
         assert np.allclose(last["v_n"][:2], 0.0) and last["sigma_speed"] <= 0.05 < last["sigma_h"] / 20.0
     else:
         assert b.health.alignments == 0 and b.health.state == "running"
+
+
+def test_aligning_after_an_untrusted_flight_does_not_flap_between_trusted_and_not():
+    """SITL run 44: landed with a held sigma of about 90 m after a flight that ended untrusted; the alignment called
+    that trusted (below the 100 m limit) and the outputs' trust test, with its hysteresis (80 m to be trusted
+    again), untrusted: "aligning" / "aligning (sigma above limit)" alternated at every output, 10 times a second.
+    One announcement now, the hysteresis decides."""
+    init = (LAT, LON, 400.0, 0.0)
+    b, link, now = _bridge(
+        BridgeConfig(output="gps_input", init=init, init_sigma_m=3.0, baro=False, gnss_aiding=False),
+        make_pipeline=lambda nav0, s: _SigmaPipeline(nav0, lambda t: 90.0, hpl=600.0),
+    )
+    for k in range(1, 3001):
+        t = 0.01 * k
+        now[0] = t
+        link.inbox.append(_at_rest(t))
+        if k % 20 == 0:
+            state = "in_air" if 5.0 < t <= 15.0 else "on_ground"
+            link.inbox += [Heartbeat(1, 1, 2, ARDUPILOT), LandedStateMessage(state, 1, 1)]
+        b.poll()
+    h = b.health.history
+    assert "magnav: degraded (HPL above limit)" in h or any("HPL above limit" in x for x in h), h
+    assert b.health.alignments == 1 and b.health.state == "aligning" and not b.health.healthy
+    after = h[h.index("magnav: landed: INS stopped, position held") :]
+    assert len(after) <= 3, after  # landed, aligning (sigma above limit): not one per output

@@ -861,8 +861,9 @@ class Bridge:
                 self._ground_h = self._baro.height(m.t)
             for t, g, a in left:
                 self._aligner.push(t, g, a)
-            ok = held.sigma_m <= c.max_sigma_m
-            self._set_state("aligning", ok, "" if ok else "sigma above limit")
+            if self.health.state != "aligning":  # then the outputs' trust test (with its hysteresis) says
+                ok = held.sigma_m <= c.max_sigma_m
+                self._set_state("aligning", ok, "" if ok else "sigma above limit")
             return
         self._start_pipeline(m)
 
