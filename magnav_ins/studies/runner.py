@@ -324,6 +324,12 @@ def _stop_pool(pool: ProcessPoolExecutor) -> None:
         if p.is_alive():
             p.kill()
             p.join(1.0)
+    # let the pool's manager thread see its dead workers and close its wake-up pipe now: left running, it raced
+    # Python's exit hook on CPython 3.11 ("Exception ignored ... OSError: Bad file descriptor" after a SIGTERM;
+    # python/cpython gh-125451)
+    manager = getattr(pool, "_executor_manager_thread", None)
+    if manager is not None:
+        manager.join(_WORKER_STOP_S)
 
 
 def _execute_dask(
