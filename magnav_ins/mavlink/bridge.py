@@ -852,10 +852,10 @@ class Bridge:
         # spinning down is no reason to start the INS again (SITL run 43: restarted 3 s after touchdown)
         touched = self._touched_down(m.t, 2.0)
         flying = not touched and (self._moving() or (self._flew and self._landed_now() != "on_ground"))
-        if c.align and touched and not self._still.still(self._g_mps2):
+        imu_still = self._still.still(self._g_mps2)
+        if c.align and touched and not imu_still:
             return
-        still = c.align and not flying and self._still.still(self._g_mps2)
-        if still:
+        if c.align and not flying and imu_still:
             on_ground = not self._flew or self._landed_now() == "on_ground"
             if on_ground and self._baro is not None and self._baro.referenced:
                 self._ground_h = self._baro.height(m.t)

@@ -88,6 +88,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
 from ...core.errors import ConfigError
@@ -115,30 +116,25 @@ def exclusion_doubt(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float, k: fl
     """The doubt (m) an excluded fix leaves on the filter's position (module docstring, ``d``): ``r`` its residual
     against the filter (north, east; m), ``R`` its covariance and ``P`` the filter's horizontal covariance (m^2),
     ``gate`` the 2-dof NIS threshold the filter's inflation is solved for, ``k`` the integrity factor. The filter is
-    inflated by the least ``s >= 1`` with ``r^T (s P + R)^-1 r <= gate``; the doubt is the correction the fix would
-    make to that filter plus ``k`` sigmas of their combination."""
+    inflated by the least ``s >= 1`` with ``r^T (s P + R)^-1 r <= gate`` (a quadratic in ``s`` after a generalised
+    eigen-decomposition of ``P`` against ``R``); the doubt is the correction the fix would make to that filter plus
+    ``k`` sigmas of their combination."""
     r = np.asarray(r, float).reshape(2)
-    R = _psd(np.asarray(R, float))
+    R = _psd(np.asarray(R, float)) + 1e-9 * np.eye(2)
     P = _psd(np.asarray(P, float))
-
-    def nis_at(s: float) -> float:
-        return float(r @ np.linalg.solve(s * P + R + 1e-9 * np.eye(2), r))
-
+    # P v = lam R v with V^T R V = I: r^T (s P + R)^-1 r = sum_i a_i / (s lam_i + 1), a_i = (v_i^T r)^2, so the
+    # least s with that at the gate is the largest root of a quadratic (closed form; the doubt is on every output)
+    lam, V = scipy.linalg.eigh(P, R)
+    lam = np.maximum(lam, 0.0)
+    a1, a2 = (V.T @ r) ** 2
     s = 1.0
-    if math.isfinite(gate) and nis_at(1.0) > gate:
-        hi = 2.0
-        while nis_at(hi) > gate and hi < 1e12:
-            hi *= 2.0
-        lo = hi / 2.0 if hi > 2.0 else 1.0
-        for _ in range(60):  # bisection in log s: nis_at decreases with s
-            mid = math.sqrt(lo * hi)
-            lo, hi = (mid, hi) if nis_at(mid) > gate else (lo, mid)
-            if hi / lo < 1.0 + 1e-9:
-                break
-        s = hi
+    if math.isfinite(gate) and a1 / (lam[0] + 1.0) + a2 / (lam[1] + 1.0) > gate:
+        coeffs = [gate * lam[0] * lam[1], gate * (lam[0] + lam[1]) - a1 * lam[1] - a2 * lam[0], gate - a1 - a2]
+        roots = np.roots(np.trim_zeros(coeffs, "f")) if any(coeffs[:2]) else np.array([])
+        real = roots.real[np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots.real))]
+        s = max(1.0, float(real.max())) if real.size else 1e12  # no root: P cannot explain r (flat in that axis)
     Ps = s * P
-    S = Ps + R + 1e-9 * np.eye(2)
-    G = Ps @ np.linalg.inv(S)
+    G = Ps @ np.linalg.inv(Ps + R)
     C = Ps - G @ Ps  # (Ps^-1 + R^-1)^-1, without inverting a singular one
     return float(np.hypot(*(G @ r))) + k * math.sqrt(lambda_max(C))
 
