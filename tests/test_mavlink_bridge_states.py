@@ -392,3 +392,50 @@ def test_aligning_after_an_untrusted_flight_does_not_flap_between_trusted_and_no
     assert b.health.alignments == 1 and b.health.state == "aligning" and not b.health.healthy
     after = h[h.index("magnav: landed: INS stopped, position held") :]
     assert len(after) <= 3, after  # landed, aligning (sigma above limit): not one per output
+
+
+@pytest.mark.parametrize("offset_m", [4.0, 40.0], ids=["autopilot-4m-off", "autopilot-40m-off"])
+def test_a_landing_waits_for_the_descent_to_end_and_holds_the_autopilots_position_within_sigma(offset_m: float):
+    """SITL run 46: (1) the INS stopped 2 s before the touchdown, 1.3 m up and descending at 0.5 m/s (a steady
+    descent looks still to an IMU), and sent a zero velocity while the copter drifted; (2) the autopilot's estimate
+    lagged the bridge's by 4.5 m (sigma 28 m), so, with the bridge's solution held, it moved those metres on the
+    ground, the position controller asked for a 23-29 deg lean and ArduCopter's land detector refused to disarm.
+    Here a 0.5 m/s descent to the takeoff height: the INS runs until the baro stops, and then the autopilot's
+    position is held when it is within the solution's 1-sigma (sigma grown by the distance), the solution's when not
+    (the pipeline's sigma is 10 m)."""
+    from magnav_ins.core import atmosphere as isa
+
+    init = (LAT, LON, 400.0, 0.4)
+    b, link, now = _bridge(
+        BridgeConfig(output="gps_input", init=init, init_sigma_m=3.0, gnss_aiding=False, attitude_aid=False),
+        make_pipeline=lambda nav0, s: _SigmaPipeline(nav0, lambda t: 10.0),
+    )
+    ap_lat = LAT + offset_m / 6_378_137.0  # the autopilot's estimate, north of the solution
+    t_ground = 20.0 + 10.0 / 0.5  # climb to 10 m by t = 20 s, then descend at 0.5 m/s
+    running_low = []
+    for k in range(1, 4701):
+        t = 0.01 * k
+        now[0] = t
+        state = "on_ground" if t <= 10.0 else "in_air" if t <= 20.0 else "landing"
+        h_rel = float(np.interp(t, [10.0, 15.0, 20.0, t_ground], [0.0, 10.0, 10.0, 0.0]))
+        link.inbox.append(_at_rest(t))
+        if k % 5 == 0:
+            link.inbox.append(PressureMessage(t, float(isa.isa_pressure_pa(400.0 + h_rel)), 15.0, 1, 1))
+        if k % 20 == 0:
+            link.inbox += [
+                Heartbeat(1, 1, 2, ARDUPILOT),
+                LandedStateMessage(state, 1, 1),
+                PositionMessage(t, ap_lat, LON, 400.0 + h_rel, np.zeros(3), 1, 1),
+            ]
+        b.poll()
+        if t_ground - 2.5 < t < t_ground - 0.2:  # 0.1-1.25 m up, descending: still flying
+            running_low.append(b.health.state == "running")
+    assert running_low and all(running_low), sum(running_low) / max(len(running_low), 1)
+    assert b.health.alignments == 1 and b.health.state == "aligning"
+    last = link.gps_inputs()[-1]
+    held_off = float(horizontal_error_m(last["lat"], last["lon"], LAT, LON))
+    if offset_m < 10.0:
+        assert held_off == pytest.approx(offset_m, abs=0.05)
+        assert last["sigma_h"] == pytest.approx(math.hypot(10.0, offset_m), rel=1e-3)
+    else:
+        assert held_off < 0.5 and last["sigma_h"] == pytest.approx(10.0, rel=1e-3)

@@ -15,10 +15,13 @@ Life of a flight (the state is announced by STATUSTEXT once per change, rate-lim
 ``aligning``              on the ground and still (:mod:`.ground`): the position is held with its uncertainty, the
                           velocity is zero, roll/pitch and the gyro biases are measured; no INS drift on the ground.
                           After a flight: the autopilot says "on ground", or it says "landing" and the baro height
-                          is back within ``touchdown_height_m`` of the height the bridge was aligned at (its land
-                          detector waits for a still velocity, and while the bridge is its position source that
-                          velocity is the bridge's own: on SITL run 42 a 1.1 m/s velocity error kept ArduCopter
-                          "landing" on the ground for 130 s while the INS drifted 220 m, until "EKF variance")
+                          is back within ``touchdown_height_m`` of the height the bridge was aligned at, with the
+                          baro climb rate under ``touchdown_climb_mps`` (its land detector waits for a still
+                          velocity, and while the bridge is its position source that velocity is the bridge's own:
+                          on SITL run 42 a 1.1 m/s velocity error kept ArduCopter "landing" on the ground for 130 s
+                          while the INS drifted 220 m, until "EKF variance"). The position held after a landing is
+                          the autopilot's own estimate when it lies within the solution's 1-sigma (sigma grown by the
+                          distance), so that its estimate does not move on the ground (:meth:`Bridge._landing_hold`)
 ``running``               the INS runs: GNSS-aided while the autopilot's GNSS is healthy (its fixes estimate the INS
                           biases in flight), map-aided after it is lost or denied (fix lost, operator command,
                           ``deny_gnss_after_s``), without a jump
@@ -182,6 +185,7 @@ class BridgeConfig:
     ekf_source_set: int | None = None  # MAV_CMD_SET_EKF_SOURCE_SET to this set when the GNSS is lost (and 1 back)
     align: bool = True  # ground alignment while still
     touchdown_height_m: float = 1.5  # "landing" within this of the aligned ground height (baro) counts as landed
+    touchdown_climb_mps: float = 0.2  # ... once the baro climb rate is below this (m/s): the descent has ended
     attitude_aid: bool = True  # the autopilot's attitude (ATTITUDE) as a measurement of the INS attitude
     attitude_interval_s: float = 1.0
     attitude_sigma_rad: tuple[float, float, float] = (0.01, 0.01, 0.035)  # tilt about N, E; heading
@@ -802,11 +806,18 @@ class Bridge:
     def _touched_down(self, t: float, hysteresis: float = 1.0) -> bool:
         """The autopilot says "landing" and the baro height at IMU time ``t`` is within ``touchdown_height_m``
         (times ``hysteresis``: 2 to stay aligned once down) of the height the bridge last aligned at on the ground
-        (module docstring, ``aligning``)."""
+        (module docstring, ``aligning``). To enter (``hysteresis`` 1) the baro climb rate must also be below
+        ``touchdown_climb_mps``: a steady descent looks still to an IMU, and SITL run 46 stopped its INS 2 s before
+        the touchdown, 1.3 m up, descending at 0.5 m/s and drifting at 1.5 m/s, then sent a zero velocity."""
         if self._landed_now() != "landing" or self._ground_h is None or self._baro is None:
             return False
         h = self._baro.height(t)
-        return h is not None and abs(h - self._ground_h) <= hysteresis * self.config.touchdown_height_m
+        if h is None or abs(h - self._ground_h) > hysteresis * self.config.touchdown_height_m:
+            return False
+        if hysteresis > 1.0:
+            return True
+        climb = self._baro.climb_rate(t)
+        return climb is not None and abs(climb) < self.config.touchdown_climb_mps
 
     def _landed_now(self) -> str:
         """The autopilot's landed state if it said so in the last 3 s, else "unknown"."""
@@ -870,7 +881,7 @@ class Bridge:
     def _enter_alignment(self) -> None:
         """Landed and still again: stop the INS, hold its position (the uncertainty is kept, not grown)."""
         est = self._pipeline.estimate()
-        self._held = _Held(est.nav.lat, est.nav.lon, est.nav.h, self._sigma_h(est), "solution before landing")
+        self._held = self._landing_hold(est)
         if hasattr(self._pipeline, "imu_bias"):
             self._carried_bias = self._pipeline.imu_bias
         self._count_fixes()
@@ -879,6 +890,27 @@ class Bridge:
         self._aligner.reset()
         self.health.alignments += 1
         self._event("info", "landed: INS stopped, position held")
+
+    def _landing_hold(self, est: NavEstimate) -> _Held:
+        """The position to hold after a landing: the solution's, or the autopilot's own estimate when that is fresh
+        (under 1 s) and within the solution's 1-sigma of it, with the sigma grown by the distance (in quadrature).
+
+        Why: the autopilot's estimate is a smoothed copy of what the bridge sent and lags it by a few metres (SITL
+        run 46: 4.5 m, at a sigma of 28 m). Held at the bridge's solution, the autopilot's estimate then moves those
+        metres on the ground; its position controller asks for a lean to follow (2 m is 22 deg at ArduCopter's
+        default gains), and its land detector refuses a landing while more than 15 deg is asked for: the copter did
+        not disarm. Holding the autopilot's estimate moves nothing, and costs less than the sigma it states."""
+        sigma = self._sigma_h(est)
+        own = _Held(est.nav.lat, est.nav.lon, est.nav.h, sigma, "solution before landing")
+        pos = self._last_position
+        if pos is None or self._clock() - pos[1] > 1.0 or not math.isfinite(sigma):
+            return own
+        ap = pos[0]
+        d = float(horizontal_error_m(ap.lat, ap.lon, est.nav.lat, est.nav.lon))
+        if not d <= sigma:
+            return own
+        log.info("landed: holding the autopilot's position, %.1f m from the solution (sigma %.1f m)", d, sigma)
+        return _Held(ap.lat, ap.lon, est.nav.h, math.hypot(sigma, d), "autopilot's estimate at landing")
 
     def _sample_type(self) -> str:
         c = self.config
