@@ -311,3 +311,41 @@ def test_doubt_of_an_exclusion_is_the_correction_the_fix_asks_of_the_least_infla
     assert 400.0 < m2.hpl(P) < 1000.0
     # a fix 20 km vague along the track and in the gate across it leaves no more than the fault-free level
     assert exclusion_doubt(40.0 * n + 3000.0 * u, R_edge, P, T, K) < K * 30.0 + 40.0
+
+
+def test_window_exclusions_that_agree_recover_and_scattered_ones_do_not() -> None:
+    """SITL run 47 (played back): three fixes 160-380 m off (NEES 7-10 against their own covariance, each inside
+    the gate) were accepted one after the other and took the filter 200 m off; from then on every fix, the right
+    ones included, failed the window test, whose sum still held the accepted bad ones (the window slides only on
+    acceptance): six exclusions, the doubt raised the HPL to 1.5 km, the bridge went untrusted and ArduCopter landed
+    on "EKF variance". Window exclusions are now evidence that the filter lost track, as gate exclusions are:
+    three that agree with each other recover (the fix is applied, the window restarts); three in random
+    directions, each as far off, do not."""
+    R = np.eye(2) * 25.0
+    Pf = np.eye(2) * 100.0
+    S = Pf + R
+    # gate (2 dof, 0.9999) 18.4; window (0.999): 4 dof 18.47, 6 dof 22.46
+    for scattered in (False, True):
+        m = FaultMonitor(0.9999, window=4, reset_after=3)
+        for t in (0.0, 10.0):  # two accepted fixes, NIS 8 each: the window holds 16
+            r = np.array([0.0, math.sqrt(8.0 * 125.0)])
+            assert m.assess(t, r, S, R, Pf).action == "accept"
+            m.accepted(t, 8.0, Pf, Pf * 0.8)
+        rng = np.random.default_rng(3)
+        acts = []
+        for k in range(6):
+            ang = rng.uniform(0.0, 2.0 * math.pi) if scattered else 0.3
+            r = math.sqrt(8.5 * 125.0) * np.array([math.cos(ang), math.sin(ang)])  # NIS 8.5: inside the gate
+            v = m.assess(20.0 + 10.0 * k, r + (0.0 if scattered else 2.0 * k), S, R, Pf)
+            acts.append(v.action)
+            if v.action != "reject":
+                m.accepted(20.0 + 10.0 * k, 8.5, Pf, Pf * 0.8, recovery=v.action == "recover")
+                break
+        if scattered:
+            assert acts == ["reject"] * 6 and m.n_recoveries == 0
+            assert m.hpl(Pf) > 30.0
+        else:
+            assert acts == ["reject", "reject", "recover"] and m.n_recoveries == 1
+            assert v.extra["recovery"] == 3.0 and "window_nis" in v.extra
+            # the window restarted: the next fix like it is judged on its own
+            assert m.assess(60.0, r, S, R, Pf).action == "accept"

@@ -13,8 +13,9 @@ Tests on each fix (:meth:`FaultMonitor.assess`), in this order:
    ``window_probability`` quantile the fix is excluded, reason ``"window NIS ... over n fixes above ..."``. It
    catches what a single gate lets through: a run of fixes each a little off (a matcher pulled by a map-error
    patch, a filter that has been over-confident for a while).
-3. **Recovery** (safe ``reset_after``): a fix excluded by the gate is either a fault or evidence that the filter
-   has lost track. The excluded fixes since the last accepted one are kept (at most ``recovery_window``); when at
+3. **Recovery** (safe ``reset_after``): a fix excluded by the gate or the window test is either a fault or evidence
+   that the filter has lost track. The excluded fixes since the last accepted one are kept (at most
+   ``recovery_window``); when at
    least ``reset_after`` of them, this one included, are *mutually consistent* -- their residuals against the
    INS, ``r_i`` at ``t_i``, agree within their covariances ``R_i`` plus the INS error growth since,
    ``Q_i = P_ne(now) - P_ne(t_i)``: ``sum_i (r_i - r_bar)^T (R_i + Q_i)^-1 (r_i - r_bar)`` inside the
@@ -22,7 +23,11 @@ Tests on each fix (:meth:`FaultMonitor.assess`), in this order:
    filter, not the fixes, is taken to be wrong: verdict ``"recover"`` (the fuser widens its own covariance and
    applies the fix). Faults that are not mutually consistent (a matcher's false peaks at independent places,
    displaced in random directions) never reach that, however many arrive; the old rule (any ``reset_after``
-   consecutive rejections re-accepted the next fix, with whatever error) accepted them.
+   consecutive rejections re-accepted the next fix, with whatever error) accepted them. The window test's
+   exclusions count too: its window slides only on an accepted fix, so after a run of accepted bad fixes every
+   later fix, the right ones included, failed it (SITL run 47 played back: three fixes 160-380 m off accepted,
+   the filter 200 m off, then six exclusions, the HPL at 1.5 km; with them counted, three exclusions and a bridge
+   RMS of 92.5 m instead of 117.9 m; the other eight recordings played back within 3 m).
 
 Every excluded fix says so in its :class:`Innovation` (``accepted=False``, the reason, ``extra["fault"] = 1``,
 the test's statistic and threshold); an accepted one carries ``extra["window_nis"]``; a recovery
@@ -259,6 +264,7 @@ class _Excluded:
     P: FloatArray  # fuser's horizontal covariance at t (prior) m^2
     by_gate: bool
     tag: Any = None
+    recoverable: bool = True  # may take part in a recovery (the gate's and the window test's exclusions)
 
 
 class FaultMonitor:
@@ -352,7 +358,15 @@ class FaultMonitor:
             s = v2 + sum(x[1] for x in self._accepted)
             Tw = chi2_threshold(2 * n, self.window_probability)
             if n > 1 and s > Tw:
-                self._exclude(_Excluded(float(t), r, R, P, False, tag))
+                ex = _Excluded(float(t), r, R, P, False, tag)
+                group = self._recovery_group(ex, P)
+                if group is not None:
+                    return Verdict(
+                        "recover",
+                        extra={"recovery": float(len(group) + 1), "nis_gate": v, "window_nis": s},
+                        group=tuple(e.tag for e in group),
+                    )
+                self._exclude(ex)
                 return Verdict(
                     "reject",
                     f"window NIS {s:.1f} over {n} fixes above {Tw:.1f}",
@@ -367,7 +381,8 @@ class FaultMonitor:
         recovery."""
         r = np.asarray(residual_ne, float).reshape(2)
         if np.all(np.isfinite(r)):
-            self._exclude(_Excluded(float(t), r, np.asarray(R_ne, float), np.asarray(P_ne, float), False))
+            R, P = np.asarray(R_ne, float), np.asarray(P_ne, float)
+            self._exclude(_Excluded(float(t), r, R, P, False, recoverable=False))
 
     def _exclude(self, ex: _Excluded) -> None:
         self.n_faults += 1
@@ -381,12 +396,13 @@ class FaultMonitor:
             self._accepted.popleft()
 
     def _recovery_group(self, new: _Excluded, P_now: FloatArray) -> list[_Excluded] | None:
-        """The largest set of earlier gate exclusions that, with ``new``, is mutually consistent and has at least
-        ``reset_after`` members (None: no recovery). Residuals are compared with covariance ``R_i + Q_i``,
-        ``Q_i = P_now - P_i`` (the INS error growth since ``t_i``, no fix having been applied since)."""
+        """The largest set of earlier exclusions by the gate or the window test that, with ``new``, is mutually
+        consistent and has at least ``reset_after`` members (None: no recovery). Residuals are compared with
+        covariance ``R_i + Q_i``, ``Q_i = P_now - P_i`` (the INS error growth since ``t_i``, no fix having been
+        applied since)."""
         if self.reset_after < 1:
             return None
-        old = [e for e in self._excluded if e.by_gate]
+        old = [e for e in self._excluded if e.recoverable]
         if len(old) + 1 < self.reset_after:
             return None
         for size in range(len(old), self.reset_after - 2, -1):
