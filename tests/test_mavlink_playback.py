@@ -76,8 +76,8 @@ def _fly(gnss_lag_s: float, sphere: bool, grade_text: str = SITL_GRADE) -> dict[
 @pytest.fixture(scope="module")
 def before() -> dict[str, float]:
     # the defect shown with the accelerometer bias model of its day (the navigation preset's, 2.45e-4 m/s^2, 1 h):
-    # the SITL grade's in-flight bias (2.5e-3 m/s^2, 150 s, issue 17) takes about half of it up as a bias while
-    # GNSS-aided (denied drift -1.25 m instead of -2.2 m), which would hide what this test shows
+    # the SITL grade's in-flight bias (2e-3 m/s^2, 150 s, issue 17) takes a third of it up as a bias while
+    # GNSS-aided (denied drift -1.5 m instead of -2.2 m), which would blur what this test shows
     old = {**json.loads(SITL_GRADE), "accel_bias_sigma": 2.45e-4, "accel_bias_tau": 3600.0}
     return _fly(0.0, sphere=False, grade_text=json.dumps(old))
 
