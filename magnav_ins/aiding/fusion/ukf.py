@@ -145,9 +145,7 @@ class UkfFuser(InertialCore):
     offline; ``smooth(iterations)``); ``reset_after``, ``fault_window``, ``fault_window_s`` (s),
     ``fault_probability``, ``integrity_risk``: fault detection and protection level (:class:`integrity.FaultMonitor`);
     ``scale_factors``, ``scale_factor_tau_s`` (s), ``map_bias_sigma_m`` (m),
-    ``map_bias_tau_s`` (s), ``map_bias_sources``: optional states (module docstring, :class:`common.ExtraStates`);
-    ``robust_dof`` (None: off), ``robust_sources`` (None: every source): Student-t down-weighting of the fixes of
-    those sources (:meth:`_robust_scale`)."""
+    ``map_bias_tau_s`` (s), ``map_bias_sources``: optional states (module docstring, :class:`common.ExtraStates`)."""
 
     name = "ukf"
 
