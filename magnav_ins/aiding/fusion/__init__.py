@@ -24,17 +24,7 @@ INTEGRITY_OPTIONS = ("reset_after", "fault_window", "fault_window_s", "fault_pro
 
 #: the keyword options each fuser's constructor takes (tested against the constructors' signatures)
 FUSER_OPTIONS: dict[str, tuple[str, ...]] = {
-    "ukf": (
-        "gate_probability",
-        *_CORE,
-        *INTEGRITY_OPTIONS,
-        "alpha",
-        "beta",
-        "kappa",
-        *EXTRA_STATE_OPTIONS,
-        "robust_dof",
-        "robust_sources",
-    ),
+    "ukf": ("gate_probability", *_CORE, *INTEGRITY_OPTIONS, "alpha", "beta", "kappa", *EXTRA_STATE_OPTIONS),
     "graph": (
         "gate_probability",
         "huber_k",

@@ -49,7 +49,6 @@ Sigma points: ``alpha = 1, beta = 2, kappa = 0`` by default (lambda = 0, no nega
 from __future__ import annotations
 
 import dataclasses
-import math
 import sys
 import types
 from typing import Any
@@ -57,7 +56,6 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from ...core.errors import ConfigError
 from ...core.types import DEFAULT_INTEGRITY_RISK, Fix, Innovation, NavEstimate
 from ...ins.error_model import apply_error
 from ..gating import ChiSquareGate, nis
@@ -172,18 +170,7 @@ class UkfFuser(InertialCore):
         map_bias_sigma_m: float | None = None,
         map_bias_tau_s: float | None = None,
         map_bias_sources: tuple[str, ...] | None = None,
-        robust_dof: float | None = None,
-        robust_sources: tuple[str, ...] | None = None,
     ) -> None:
-        if robust_dof is not None and not (isinstance(robust_dof, int | float) and math.isfinite(robust_dof)
-                                           and robust_dof > 0):  # fmt: skip
-            raise ConfigError(f"fusion option robust_dof: expected a number > 0 or None, got {robust_dof!r}")
-        if robust_sources is not None and (
-            isinstance(robust_sources, str) or not all(isinstance(x, str) for x in robust_sources)
-        ):
-            raise ConfigError(f"fusion option robust_sources: expected a list of source names, got {robust_sources!r}")
-        self.robust_dof = None if robust_dof is None else float(robust_dof)
-        self.robust_sources = None if robust_sources is None else tuple(robust_sources)
         self.extra = ExtraStates.from_options(
             noise, scale_factors=scale_factors, scale_factor_tau_s=scale_factor_tau_s,
             map_bias_sigma_m=map_bias_sigma_m, map_bias_tau_s=map_bias_tau_s, map_bias_sources=map_bias_sources,
@@ -316,10 +303,6 @@ class UkfFuser(InertialCore):
         elif verdict.action == "reject":
             self._replay(rest)
             return Innovation(float(fix.t), y[:2], S_ne, v_ne, False, verdict.reason, fix.source, verdict.extra)
-        robust = 1.0
-        if not forced:
-            robust = self._robust_scale(fix, v, dim)
-            Rz = Rz * robust
         P_prior = self._P.copy()
         u._dim_z = dim
         u.update(z, R=Rz, hx=hx)
@@ -346,26 +329,7 @@ class UkfFuser(InertialCore):
         if forced:
             extra["inflation"] = forced
             v_ne = nis(y[:2], S_ne)
-        if robust > 1.0:
-            extra["robust_scale"] = robust
         return Innovation(float(fix.t), y[:2], S_ne, v_ne, True, "", fix.source, extra)
-
-    def _robust_scale(self, fix: Fix, v: float, dim: int) -> float:
-        """Factor (>= 1) on a fix's covariance for Student-t errors of ``robust_dof`` (nu) degrees of freedom:
-        ``(nu + NIS) / (nu + dim)`` with the fix's NIS ``v`` against ``S = H P H' + R`` (one variational step of the
-        Student-t measurement update, Piche, Sarkka & Hartikainen 2012: the noise scale's posterior mean given the
-        innovation), never below 1 (a close fix keeps its stated covariance). 1 without ``robust_dof`` or for a
-        source outside ``robust_sources``.
-
-        Why (issue 17): map fixes have heavier tails than their covariance (``sitl_flight.sitl_matcher``); one
-        4.8-sigma fix inside the chi-square gate moved the bridge's velocity by 0.85 m/s through the position-velocity
-        correlation (0.9-0.99 along the fix's tight axis) and its position by 130-170 m for a minute."""
-        if self.robust_dof is None or not np.isfinite(v):
-            return 1.0
-        if self.robust_sources is not None and fix.source not in self.robust_sources:
-            return 1.0
-        nu = self.robust_dof
-        return max(1.0, (nu + float(v)) / (nu + float(dim)))
 
     def correct_batch(self, fixes: list[Fix], cov: np.ndarray) -> Innovation:
         """Fuse a batch of correlated fixes (time order) with their joint covariance ``cov`` (2J, 2J) m^2 as one
