@@ -106,7 +106,7 @@ SITL_MAP_CORRELATION_M = 50.0
 #: the filter's states can carry it (body axes, which turn with the vehicle at the corners, where the true error
 #: changes anyway). Played back on all 11 kept flights: velocity NEES 0.87-4.05 -> 0.31-1.24, velocity RMS error
 #: lower or equal on every one (mean 0.53 -> 0.42 m/s), bridge NEES 0.54-2.28 -> 0.28-0.85; the bridge RMS lower on
-#: 5 of the 7 held-out routes, but worse on runs 42 and 46 (one stretch of outlying fixes, below), and a larger HPL
+#: 5 of the 7 held-out routes, worse on runs 42 and 46 (3 fixes 3-5 sigmas off 620-650 s into the denial), a larger HPL
 #: in stretches without fixes (trusted 89-100 % -> 84-100 %). With 2.5e-3 (the pool) the mean RMS is 38.8 m and
 #: single recordings differ from 2e-3 by 10-20 m either way (which fixes pass the gate). tests/test_sitl_grade.py
 #: is the synthetic case.
