@@ -36,15 +36,15 @@ DENY_S = 80.0  # from the bridge's first GNSS message, the start of the recordin
 R_SPHERE = 6378100.0
 
 
-def _fly(gnss_lag_s: float, sphere: bool) -> dict[str, float]:
+def _fly(gnss_lag_s: float, sphere: bool, grade_text: str = SITL_GRADE) -> dict[str, float]:
     """Along-track error (m, INS minus truth, north: the leg is flown north) while GNSS-aided in cruise (mean over
     55-80 s) and its change over the first 35 s denied."""
     fmap = load_map("builtin:osborne-magnetic")
-    grade = json.loads(SITL_GRADE)
+    grade = json.loads(grade_text)
     assert grade["base"] == "navigation"
 
     def factory(nav0, sigma_m):  # noqa: ANN001, ANN202
-        return make_online_pipeline(nav0, sigma_m, fmap, grade=SITL_GRADE, matcher="none", fusion="ukf")
+        return make_online_pipeline(nav0, sigma_m, fmap, grade=grade_text, matcher="none", fusion="ukf")
 
     cfg = BridgeConfig(
         output="gps_input", output_rate_hz=10, gps_id=1, imu_world="flat", deny_gnss_after_s=DENY_S,
@@ -75,7 +75,11 @@ def _fly(gnss_lag_s: float, sphere: bool) -> dict[str, float]:
 
 @pytest.fixture(scope="module")
 def before() -> dict[str, float]:
-    return _fly(0.0, sphere=False)
+    # the defect shown with the accelerometer bias model of its day (the navigation preset's, 2.45e-4 m/s^2, 1 h):
+    # the SITL grade's in-flight bias (2e-3 m/s^2, 150 s, issue 17) takes a third of it up as a bias while
+    # GNSS-aided (denied drift -1.5 m instead of -2.2 m), which would blur what this test shows
+    old = {**json.loads(SITL_GRADE), "accel_bias_sigma": 2.45e-4, "accel_bias_tau": 3600.0}
+    return _fly(0.0, sphere=False, grade_text=json.dumps(old))
 
 
 @pytest.fixture(scope="module")

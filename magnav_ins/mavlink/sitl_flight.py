@@ -92,9 +92,27 @@ SITL_MAP_CORRELATION_M = 50.0
 #: by up to 2e-6 rad/s on the square's legs (and step by 0.1-0.3 mrad at its corners). Accelerometer offsets 1.0e-3
 #: m/s^2 (copter.parm's INS_ACCOFFS) and scale +0.11 % (INS_ACCSCAL); the rest of the "navigation" preset (Honeywell
 #: H764-G) is smaller.
+#:
+#: In flight the horizontal channel sees more (issue 17): an acceleration error of 2.0-3.0 mm/s^2 per axis (RMS,
+#: pooled 2.6; the held-out routes' 2.2-4.6) between map fixes, steady along a leg (autocorrelation ~0.5 at
+#: 100-150 s) and changing at the corners, where the INS tilt steps by 0.5-0.7 mrad against SIM_STATE (the gyros'
+#: corner steps above). Measured in playback of the kept flights as the velocity error's growth between accepted
+#: fixes against SIM_STATE (the four older default-route recordings; main 22fc83f). With the navigation preset's
+#: accelerometer bias (2.45e-4 m/s^2, 1 h) the filter assumed a tenth of it: its velocity sigma stayed at 0.25
+#: m/s while the error reached 1-1.6 m/s (velocity NEES 0.9-4.1, above 2 on 6 of 11 recordings), and the
+#: propagation, not the fixes, made that error (the fixes removed 0.8-4.3 m^2/s^2 of error power a flight, the
+#: propagation added 1.1-5.7). So the accelerometer bias here is a Gauss-Markov process of 2e-3 m/s^2 (the
+#: lower end of those recordings: the bias states take up part of a leg's error) and 150 s: the leg-wise error as
+#: the filter's states can carry it (body axes, which turn with the vehicle at the corners, where the true error
+#: changes anyway). Played back on all 11 kept flights: velocity NEES 0.87-4.05 -> 0.31-1.24, velocity RMS error
+#: lower or equal on every one (mean 0.53 -> 0.42 m/s), bridge NEES 0.54-2.28 -> 0.28-0.85; the bridge RMS lower on
+#: 5 of the 7 held-out routes, worse on runs 42 and 46 (3 fixes 3-5 sigmas off 620-650 s into the denial), a larger HPL
+#: in stretches without fixes (trusted 89-100 % -> 84-100 %). With 2.5e-3 (the pool) the mean RMS is 38.8 m and
+#: single recordings differ from 2e-3 by 10-20 m either way (which fixes pass the gate). tests/test_sitl_grade.py
+#: is the synthetic case.
 SITL_GRADE = json.dumps(
     {"base": "navigation", "arw": 6.5e-6, "vrw": 8.5e-5, "gyro_turn_on_sigma": 2e-6, "accel_turn_on_sigma": 1e-3,
-     "accel_scale_sigma": 0.0011}
+     "accel_scale_sigma": 0.0011, "accel_bias_sigma": 2e-3, "accel_bias_tau": 150.0}
 )  # fmt: skip
 
 
