@@ -349,3 +349,41 @@ def test_window_exclusions_that_agree_recover_and_scattered_ones_do_not() -> Non
             assert v.extra["recovery"] == 3.0 and "window_nis" in v.extra
             # the window restarted: the next fix like it is judged on its own
             assert m.assess(60.0, r, S, R, Pf).action == "accept"
+
+
+def test_a_lone_implausible_exclusion_leaves_no_doubt_on_a_confirmed_filter() -> None:
+    """SITL run 48: two false peaks 0.8 and 4.7 km off (50-80 m sigmas) against a filter confirmed by fixes 30 s
+    before (sigma 36 m, error 25 m): each set the HPL alone (0.98 and 5.4 km), the bridge went untrusted and the
+    autopilot landed. Only a filter 30 times over-confident in variance could explain the first (errors of 22 of its
+    sigmas): a fault of the matcher's. It counts when a second exclusion agrees with it, when three are unresolved,
+    or when no fix ever confirmed the filter."""
+    from magnav_ins.aiding.fusion.integrity import MAX_DOUBT_INFLATION, filter_inflation
+
+    P = np.diag([28.6**2, 35.9**2])
+    R = np.diag([50.0**2, 79.0**2])
+    r = np.array([537.5, -599.0])
+    gate = FaultMonitor(0.9999).gate_threshold()
+    assert filter_inflation(r, R, P, gate) > MAX_DOUBT_INFLATION
+    # a fix 9 sigmas of the filter off (outside the gate) needs an inflation of 3: it keeps its doubt
+    near = np.array([130.0, 100.0])
+    assert 1.0 < filter_inflation(near * 2.2, R, P, gate) < 5.0
+
+    def monitor(confirmed: bool) -> FaultMonitor:
+        m = FaultMonitor(0.9999, window=4, reset_after=3)
+        if confirmed:
+            assert m.assess(0.0, np.array([10.0, -5.0]), P + R, R, P).action == "accept"
+            m.accepted(0.0, 0.05, P, P * 0.7)
+        return m
+
+    nominal = FaultMonitor(0.9999).k * math.sqrt(35.9**2)
+    m = monitor(True)
+    assert m.assess(30.0, r, P + R, R, P).action == "reject"
+    assert m.hpl(P, margin_m=0.0) == pytest.approx(nominal)  # no doubt
+    m.assess(40.0, r + np.array([20.0, -10.0]), P + R, R, P)  # a second one agrees: the filter may be lost
+    assert m.hpl(P, margin_m=0.0) > 700.0
+    m = monitor(False)  # never confirmed: full doubt from the first
+    m.assess(30.0, r, P + R, R, P)
+    assert m.hpl(P, margin_m=0.0) > 700.0
+    m = monitor(True)  # a plausible one keeps its doubt on a confirmed filter
+    assert m.assess(30.0, near * 2.2, P + R, R, P).action == "reject"
+    assert m.hpl(P, margin_m=0.0) > nominal + 50.0

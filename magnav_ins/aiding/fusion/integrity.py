@@ -77,6 +77,13 @@ Horizontal protection level (:meth:`FaultMonitor.hpl`, m), at ``integrity_risk``
   autopilot landed on "EKF variance"; on run 40, played back, three fixes the window test excluded (each inside
   the gate, 160-500 m sigma along the track) left doubts of 283-772 m, where this rule gives 194-223 m.
   The next accepted fix resolves them (they were faults); a recovery resolves them the other way.
+  A lone exclusion that only a filter more than :data:`MAX_DOUBT_INFLATION` (25) times over-confident in variance
+  could explain (its errors 21 sigmas out) is taken for the matcher's fault and leaves no doubt, while the window
+  holds accepted fixes, no other unresolved exclusion agrees with it and fewer than ``reset_after`` are unresolved:
+  on SITL run 48 two false peaks, 0.8 and 4.7 km off with 50-400 m sigmas, against a filter confirmed 30 s before
+  (sigma 36 m, error 25 m) raised the HPL to 0.98 and 5.4 km, the bridge went untrusted and ArduCopter landed on
+  "EKF variance" (played back: trusted 91.3 -> 99.7 % of the denied outputs). A filter never confirmed by a fix
+  (started off, or just recovered) keeps the full doubt of every exclusion.
 
 No peer library (MagNav.jl, pyins, navlie, Stone Soup) provides FDE or protection levels for map-matching fixes;
 the construction is that of Kalman-filter integrity monitoring against measurement faults (Joerger & Pervan 2013,
@@ -108,6 +115,11 @@ DEFAULT_WINDOW_S = 600.0
 DEFAULT_WINDOW_PROBABILITY = 0.999
 DEFAULT_RESET_AFTER = 3
 DEFAULT_RECOVERY_WINDOW = 6
+#: the largest over-confidence (variance factor ``s``; :func:`filter_inflation`) the doubt grants the filter on the
+#: word of one excluded fix alone (:meth:`FaultMonitor.doubt`). 25 is a filter whose errors reach 21 of its sigmas at
+#: the gate's probability (``sqrt(25 x 18.4)``); the worst seen is 7 (SITL flights, error over HPL at most 0.82 with
+#: the HPL at 6-9 sigmas), on the real-data suite the HPL was exceeded at 0-0.3 % of the epochs.
+MAX_DOUBT_INFLATION = 25.0
 
 
 def integrity_factor(integrity_risk: float) -> float:
@@ -117,13 +129,11 @@ def integrity_factor(integrity_risk: float) -> float:
     return math.sqrt(-2.0 * math.log(integrity_risk))
 
 
-def exclusion_doubt(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float, k: float) -> float:
-    """The doubt (m) an excluded fix leaves on the filter's position (module docstring, ``d``): ``r`` its residual
-    against the filter (north, east; m), ``R`` its covariance and ``P`` the filter's horizontal covariance (m^2),
-    ``gate`` the 2-dof NIS threshold the filter's inflation is solved for, ``k`` the integrity factor. The filter is
-    inflated by the least ``s >= 1`` with ``r^T (s P + R)^-1 r <= gate`` (a quadratic in ``s`` after a generalised
-    eigen-decomposition of ``P`` against ``R``); the doubt is the correction the fix would make to that filter plus
-    ``k`` sigmas of their combination."""
+def filter_inflation(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float) -> float:
+    """The least ``s >= 1`` with ``r^T (s P + R)^-1 r <= gate``: how over-confident the filter (horizontal
+    covariance ``P``, m^2) must be for an excluded fix (residual ``r`` m, covariance ``R`` m^2) to be consistent
+    with it at the 2-dof NIS threshold ``gate``; 1e12 when no inflation can (the fix is off in a direction ``P``
+    does not cover). A quadratic in ``s`` after a generalised eigen-decomposition of ``P`` against ``R``."""
     r = np.asarray(r, float).reshape(2)
     R = _psd(np.asarray(R, float)) + 1e-9 * np.eye(2)
     P = _psd(np.asarray(P, float))
@@ -132,12 +142,24 @@ def exclusion_doubt(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float, k: fl
     lam, V = scipy.linalg.eigh(P, R)
     lam = np.maximum(lam, 0.0)
     a1, a2 = (V.T @ r) ** 2
-    s = 1.0
-    if math.isfinite(gate) and a1 / (lam[0] + 1.0) + a2 / (lam[1] + 1.0) > gate:
-        coeffs = [gate * lam[0] * lam[1], gate * (lam[0] + lam[1]) - a1 * lam[1] - a2 * lam[0], gate - a1 - a2]
-        roots = np.roots(np.trim_zeros(coeffs, "f")) if any(coeffs[:2]) else np.array([])
-        real = roots.real[np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots.real))]
-        s = max(1.0, float(real.max())) if real.size else 1e12  # no root: P cannot explain r (flat in that axis)
+    if not (math.isfinite(gate) and a1 / (lam[0] + 1.0) + a2 / (lam[1] + 1.0) > gate):
+        return 1.0
+    coeffs = [gate * lam[0] * lam[1], gate * (lam[0] + lam[1]) - a1 * lam[1] - a2 * lam[0], gate - a1 - a2]
+    roots = np.roots(np.trim_zeros(coeffs, "f")) if any(coeffs[:2]) else np.array([])
+    real = roots.real[np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots.real))]
+    return max(1.0, float(real.max())) if real.size else 1e12
+
+
+def exclusion_doubt(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float, k: float) -> float:
+    """The doubt (m) an excluded fix leaves on the filter's position (module docstring, ``d``): ``r`` its residual
+    against the filter (north, east; m), ``R`` its covariance and ``P`` the filter's horizontal covariance (m^2),
+    ``gate`` the 2-dof NIS threshold the filter's inflation is solved for, ``k`` the integrity factor. The filter is
+    inflated by the least ``s >= 1`` with ``r^T (s P + R)^-1 r <= gate`` (:func:`filter_inflation`); the doubt is
+    the correction the fix would make to that filter plus ``k`` sigmas of their combination."""
+    r = np.asarray(r, float).reshape(2)
+    s = filter_inflation(r, R, P, gate)
+    R = _psd(np.asarray(R, float)) + 1e-9 * np.eye(2)
+    P = _psd(np.asarray(P, float))
     Ps = s * P
     G = Ps @ np.linalg.inv(Ps + R)
     C = Ps - G @ Ps  # (Ps^-1 + R^-1)^-1, without inverting a singular one
@@ -459,12 +481,25 @@ class FaultMonitor:
         return self._margin * math.sqrt(lambda_max(P_ne) / self._lam_ref)
 
     def doubt(self, P_ne: ArrayLike) -> float:
-        """The doubt term (m): the largest :func:`exclusion_doubt` of the unresolved exclusions (0 without any)."""
+        """The doubt term (m): the largest :func:`exclusion_doubt` of the unresolved exclusions that could be right
+        (0 without any). While the window holds accepted fixes (the filter was confirmed by fixes consistent with
+        its covariance), one the filter could only explain by being more than :data:`MAX_DOUBT_INFLATION` times
+        over-confident (in variance) counts only when another unresolved exclusion agrees with it, or when
+        ``reset_after`` or more are unresolved (module docstring, ``d``). A filter never confirmed (started off,
+        or just recovered) is granted nothing."""
         if not self._excluded:
             return 0.0
         P = np.asarray(P_ne, float)
         gate = self._gate2.threshold if self.gate_probability is not None else math.inf
-        return max(exclusion_doubt(e.r, e.R, P, gate, self.k) for e in self._excluded)
+        lone_ok = bool(self._accepted) and len(self._excluded) < max(self.reset_after, 2)
+        out = 0.0
+        for e in self._excluded:
+            if lone_ok and filter_inflation(e.r, e.R, P, gate) > MAX_DOUBT_INFLATION:
+                others = [x for x in self._excluded if x is not e]
+                if not any(self._consistent([x, e], P) for x in others):
+                    continue  # a lone fix no plausible filter error explains: a fault of the matcher's
+            out = max(out, exclusion_doubt(e.r, e.R, P, gate, self.k))
+        return out
 
     def hpl(self, P_ne: ArrayLike, margin_m: float | None = None) -> float:
         """The horizontal protection level (m) for the current horizontal covariance ``P_ne`` (m^2); NaN when
