@@ -327,6 +327,22 @@ def test_the_warm_up_runs_one_full_matcher_window():
     assert scans and scans[0] == 80
 
 
+def _flight_inputs(link, k: int, t: float, state: str, h_rel: float, ap_lat: float, v_n, accel_bias=None) -> None:  # noqa: ANN001
+    """IMU sample ``k`` at ``t`` (at rest, plus ``accel_bias``), the baro at ``h_rel`` m above the takeoff point
+    every 5th, and every 20th the autopilot's heartbeat, landed state and position (``ap_lat``, LON; ``v_n``)."""
+    from magnav_ins.core import atmosphere as isa
+
+    link.inbox.append(_at_rest(t, accel_bias=accel_bias))
+    if k % 5 == 0:
+        link.inbox.append(PressureMessage(t, float(isa.isa_pressure_pa(400.0 + h_rel)), 15.0, 1, 1))
+    if k % 20 == 0:
+        link.inbox += [
+            Heartbeat(1, 1, 2, ARDUPILOT),
+            LandedStateMessage(state, 1, 1),
+            PositionMessage(t, ap_lat, LON, 400.0 + h_rel, v_n, 1, 1),
+        ]
+
+
 @pytest.mark.parametrize("ground_offset_m", [0.5, 10.0], ids=["touched-down", "hovering-10m-up"])
 def test_landing_at_the_takeoff_height_stops_the_ins_although_the_autopilot_echoes_a_drifting_velocity(
     ground_offset_m: float,
@@ -336,7 +352,6 @@ def test_landing_at_the_takeoff_height_stops_the_ins_although_the_autopilot_echo
     Here: aligned on the ground, a flight (landed state "in_air", baro 30 m up), then "landing" with the baro back at
     the takeoff height and the autopilot reporting 1.5 m/s: the bridge stops its INS and holds its position, through
     the jolt of the motors spinning down. A vehicle hovering 10 m up while "landing" keeps its INS running."""
-    from magnav_ins.core import atmosphere as isa
 
     init = (LAT, LON, 400.0, 0.4)
     b, link, now = _bridge(BridgeConfig(output="gps_input", init=init, init_sigma_m=3.0, gnss_aiding=False))
@@ -347,15 +362,8 @@ def test_landing_at_the_takeoff_height_stops_the_ins_although_the_autopilot_echo
         # baro height above the takeoff point: climb at 3 m/s to 30 m, descend at 3 m/s to the hover / ground
         h_rel = float(np.interp(t, [10.0, 20.0, 20.0 + (30.0 - ground_offset_m) / 3.0], [0.0, 30.0, ground_offset_m]))
         jolt = 30.8 < t < 31.4  # after the touchdown: the motors spin down (SITL run 43 restarted its INS there)
-        link.inbox.append(_at_rest(t, accel_bias=jolt * 2.0 * np.array([(-1) ** k, 0.0, 0.0])))
-        if k % 5 == 0:
-            link.inbox.append(PressureMessage(t, float(isa.isa_pressure_pa(400.0 + h_rel)), 15.0, 1, 1))
-        if k % 20 == 0:
-            link.inbox += [
-                Heartbeat(1, 1, 2, ARDUPILOT),
-                LandedStateMessage(state, 1, 1),
-                PositionMessage(t, LAT, LON, 400.0 + h_rel, np.array([1.5, 0.0, 0.0]) * (t > 21.0), 1, 1),
-            ]
+        bias = jolt * 2.0 * np.array([(-1) ** k, 0.0, 0.0])
+        _flight_inputs(link, k, t, state, h_rel, LAT, np.array([1.5, 0.0, 0.0]) * (t > 21.0), bias)
         b.poll()
         if t == pytest.approx(25.0):
             assert b.health.state == "running" and b.health.pipeline_starts == 1  # in the air: the INS runs
@@ -403,7 +411,6 @@ def test_a_landing_waits_for_the_descent_to_end_and_holds_the_autopilots_positio
     Here a 0.5 m/s descent to the takeoff height: the INS runs until the baro stops, and then the autopilot's
     position is held when it is within the solution's 1-sigma (sigma grown by the distance), the solution's when not
     (the pipeline's sigma is 10 m)."""
-    from magnav_ins.core import atmosphere as isa
 
     init = (LAT, LON, 400.0, 0.4)
     b, link, now = _bridge(
@@ -418,15 +425,7 @@ def test_a_landing_waits_for_the_descent_to_end_and_holds_the_autopilots_positio
         now[0] = t
         state = "on_ground" if t <= 10.0 else "in_air" if t <= 20.0 else "landing"
         h_rel = float(np.interp(t, [10.0, 15.0, 20.0, t_ground], [0.0, 10.0, 10.0, 0.0]))
-        link.inbox.append(_at_rest(t))
-        if k % 5 == 0:
-            link.inbox.append(PressureMessage(t, float(isa.isa_pressure_pa(400.0 + h_rel)), 15.0, 1, 1))
-        if k % 20 == 0:
-            link.inbox += [
-                Heartbeat(1, 1, 2, ARDUPILOT),
-                LandedStateMessage(state, 1, 1),
-                PositionMessage(t, ap_lat, LON, 400.0 + h_rel, np.zeros(3), 1, 1),
-            ]
+        _flight_inputs(link, k, t, state, h_rel, ap_lat, np.zeros(3))
         b.poll()
         if t_ground - 2.5 < t < t_ground - 0.2:  # 0.1-1.25 m up, descending: still flying
             running_low.append(b.health.state == "running")
