@@ -150,14 +150,17 @@ def filter_inflation(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float) -> f
     return max(1.0, float(real.max())) if real.size else 1e12
 
 
-def exclusion_doubt(r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float, k: float) -> float:
+def exclusion_doubt(
+    r: ArrayLike, R: ArrayLike, P: ArrayLike, gate: float, k: float, inflation: float | None = None
+) -> float:
     """The doubt (m) an excluded fix leaves on the filter's position (module docstring, ``d``): ``r`` its residual
     against the filter (north, east; m), ``R`` its covariance and ``P`` the filter's horizontal covariance (m^2),
     ``gate`` the 2-dof NIS threshold the filter's inflation is solved for, ``k`` the integrity factor. The filter is
     inflated by the least ``s >= 1`` with ``r^T (s P + R)^-1 r <= gate`` (:func:`filter_inflation`); the doubt is
-    the correction the fix would make to that filter plus ``k`` sigmas of their combination."""
+    the correction the fix would make to that filter plus ``k`` sigmas of their combination. ``inflation``: that
+    ``s`` when the caller has it already."""
     r = np.asarray(r, float).reshape(2)
-    s = filter_inflation(r, R, P, gate)
+    s = filter_inflation(r, R, P, gate) if inflation is None else float(inflation)
     R = _psd(np.asarray(R, float)) + 1e-9 * np.eye(2)
     P = _psd(np.asarray(P, float))
     Ps = s * P
@@ -284,9 +287,8 @@ class _Excluded:
     r: FloatArray  # residual fix - INS (north, east) m at t
     R: FloatArray  # fix covariance m^2
     P: FloatArray  # fuser's horizontal covariance at t (prior) m^2
-    by_gate: bool
+    test: str  # what excluded it: "gate", "window" (both may take part in a recovery) or "external"
     tag: Any = None
-    recoverable: bool = True  # may take part in a recovery (the gate's and the window test's exclusions)
 
 
 class FaultMonitor:
@@ -362,7 +364,7 @@ class FaultMonitor:
             return Verdict("accept", extra={"nis_ne": v2})
         T = self.gate_threshold(dof)
         if not (np.isfinite(v) and v <= T):
-            ex = _Excluded(float(t), r, R, P, True, tag)
+            ex = _Excluded(float(t), r, R, P, "gate", tag)
             group = self._recovery_group(ex, P) if np.isfinite(v) else None
             if group is not None:
                 return Verdict(
@@ -380,7 +382,7 @@ class FaultMonitor:
             s = v2 + sum(x[1] for x in self._accepted)
             Tw = chi2_threshold(2 * n, self.window_probability)
             if n > 1 and s > Tw:
-                ex = _Excluded(float(t), r, R, P, False, tag)
+                ex = _Excluded(float(t), r, R, P, "window", tag)
                 group = self._recovery_group(ex, P)
                 if group is not None:
                     return Verdict(
@@ -404,7 +406,7 @@ class FaultMonitor:
         r = np.asarray(residual_ne, float).reshape(2)
         if np.all(np.isfinite(r)):
             R, P = np.asarray(R_ne, float), np.asarray(P_ne, float)
-            self._exclude(_Excluded(float(t), r, R, P, False, recoverable=False))
+            self._exclude(_Excluded(float(t), r, R, P, "external"))
 
     def _exclude(self, ex: _Excluded) -> None:
         self.n_faults += 1
@@ -424,7 +426,7 @@ class FaultMonitor:
         applied since)."""
         if self.reset_after < 1:
             return None
-        old = [e for e in self._excluded if e.recoverable]
+        old = [e for e in self._excluded if e.test != "external"]
         if len(old) + 1 < self.reset_after:
             return None
         for size in range(len(old), self.reset_after - 2, -1):
@@ -494,11 +496,12 @@ class FaultMonitor:
         lone_ok = bool(self._accepted) and len(self._excluded) < max(self.reset_after, 2)
         out = 0.0
         for e in self._excluded:
-            if lone_ok and filter_inflation(e.r, e.R, P, gate) > MAX_DOUBT_INFLATION:
+            s = filter_inflation(e.r, e.R, P, gate)
+            if lone_ok and s > MAX_DOUBT_INFLATION:
                 others = [x for x in self._excluded if x is not e]
                 if not any(self._consistent([x, e], P) for x in others):
                     continue  # a lone fix no plausible filter error explains: a fault of the matcher's
-            out = max(out, exclusion_doubt(e.r, e.R, P, gate, self.k))
+            out = max(out, exclusion_doubt(e.r, e.R, P, gate, self.k, inflation=s))
         return out
 
     def hpl(self, P_ne: ArrayLike, margin_m: float | None = None) -> float:
