@@ -214,9 +214,12 @@ def _parse_init(text: str | None) -> tuple[float, float, float, float] | None:
 
 class _TrackWriter:
     """``--track-csv``: one line per output, flushed every second (the bridge may be stopped at any time; a
-    track is a log, not a result, so it is written in place)."""
+    track is a log, not a result, so it is written in place). ``sigma_h_m`` is the largest horizontal 1-sigma (what
+    the output carries); ``cov_nn_m2``, ``cov_ne_m2``, ``cov_ee_m2`` the horizontal covariance (north/east, m^2),
+    for a NEES against truth that an elongated ellipse does not understate."""
 
-    COLUMNS = ("t_wall", "t", "lat_deg", "lon_deg", "h_m", "sigma_h_m", "hpl_m", "trusted", "sent", "state", "aiding")
+    COLUMNS = ("t_wall", "t", "lat_deg", "lon_deg", "h_m", "sigma_h_m", "cov_nn_m2", "cov_ne_m2", "cov_ee_m2", "hpl_m",
+               "trusted", "sent", "state", "aiding")  # fmt: skip
 
     def __init__(self, path: str) -> None:
         from ..core.errors import ConfigError
@@ -229,9 +232,10 @@ class _TrackWriter:
         self._last_flush = 0.0
 
     def __call__(self, o: dict) -> None:
+        c = o["cov_ne"]
         self._fh.write(
             f"{o['t_wall']:.3f},{o['t']:.4f},{math.degrees(o['lat']):.8f},{math.degrees(o['lon']):.8f},{o['h']:.2f},"
-            f"{o['sigma_h']:.2f},{o['hpl']:.2f},{int(o['trusted'])},{int(o['sent'])},{o['state']},{o['aiding']}\n"
+            f"{o['sigma_h']:.2f},{c[0, 0]:.2f},{c[0, 1]:.2f},{c[1, 1]:.2f},{o['hpl']:.2f},{int(o['trusted'])},{int(o['sent'])},{o['state']},{o['aiding']}\n"
         )
         if o["t_wall"] - self._last_flush > 1.0:
             self._fh.flush()

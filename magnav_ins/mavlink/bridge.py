@@ -343,8 +343,9 @@ class _Held:
 
 @dataclass(frozen=True)
 class _Solution:
-    """What an output reports: position (rad, m ellipsoidal), NED velocity, attitude, 1-sigmas (m, m/s) and the
-    protection level (m, nan if none)."""
+    """What an output reports: position (rad, m ellipsoidal), NED velocity, attitude, 1-sigmas (m, m/s), the
+    protection level (m, nan if none) and the horizontal covariance ``cov_ne`` (2, 2) north/east m^2 (``sigma_h`` is
+    its largest 1-sigma: what the output's accuracy fields carry, in every direction)."""
 
     t: float
     lat: float
@@ -357,6 +358,7 @@ class _Solution:
     sigma_speed: float
     hpl_m: float
     finite: bool
+    cov_ne: np.ndarray
 
 
 class Bridge:
@@ -1166,7 +1168,7 @@ class Bridge:
             v_n = np.array([0.0, 0.0, -climb if climb is not None else 0.0])
             return _Solution(
                 t, held.lat, held.lon, held.h if h_baro is None else h_baro, v_n, q_nb_from_euler(roll, pitch, yaw),
-                held.sigma_m, self._vertical_sigma(t), 0.05, math.nan, True,
+                held.sigma_m, self._vertical_sigma(t), 0.05, math.nan, True, np.eye(2) * held.sigma_m**2,
             )  # fmt: skip
         est = self._pipeline.estimate()
         nav = est.nav
@@ -1180,7 +1182,7 @@ class Bridge:
         finite = bool(np.all(np.isfinite(P[:9, :9])) and math.isfinite(nav.lat) and math.isfinite(nav.lon))
         hpl = float(getattr(est, "hpl_m", math.nan))
         return _Solution(nav.t, nav.lat, nav.lon, nav.h, v_n, nav.q_nb, self._sigma_h(est),
-                         self._vertical_sigma(nav.t), sigma_speed, hpl, finite)  # fmt: skip
+                         self._vertical_sigma(nav.t), sigma_speed, hpl, finite, np.asarray(est.cov_ne, float))  # fmt: skip
 
     def _trust(self, s: _Solution) -> tuple[bool, str]:
         c = self.config
@@ -1252,6 +1254,7 @@ class Bridge:
         if self.on_output is not None:
             self.on_output(
                 {"t_wall": self._wall(), "t": s.t, "lat": s.lat, "lon": s.lon, "h": s.h, "sigma_h": s.sigma_h,
+                 "cov_ne": s.cov_ne,
                  "hpl": s.hpl_m, "trusted": trusted, "sent": not quiet and (trusted or c.output != "odometry"),
                  "state": self.health.state, "aiding": self.health.aiding}
             )  # fmt: skip
