@@ -19,7 +19,12 @@ Loop (Wang et al. 2022, seed 001, Fig. 1 / sec. 3.3; Storms 2009, seed 004, sec.
   one value, which fits every place where the map is flat along the few metres the INS drifts, so a profile matcher
   would issue a narrow fix anywhere; measured on the SITL flight of issue 17, fixes from the descent and the ground
   were 120-345 m off with 25-35 m sigmas). When a fix is accepted, the stored window positions are shifted by the correction
-  applied at the fix time, so the window stays one rigid INS track.
+  applied at the fix time, so the window stays one rigid INS track. With ``long_window`` a window whose fix is
+  ambiguous, or whose likelihood reaches the edge of the search window, is matched again over the last
+  ``long_window`` readings (:meth:`Pipeline.match_window`): a section over a smooth stretch of the map fits several
+  places, and a longer one reaches the next features (the bridge's default, twice its 80-reading window: on the
+  SITL flights of issue 17 with 11-28 such refusals each, the bridge lost trust for 8-119 s on 6 of 16 recordings
+  played back, 9-44 s on 4 with it).
 * Every fix (also "no fix") goes to ``fuser.correct`` (its :class:`Innovation` records acceptance and reason), with
   the optional height aid ``height_aid(t) -> (h_m, sigma_m)`` (e.g. a barometer). A batch matcher in retrodiction
   mode (``mode = "retrodiction"`` with ``match_batch``, PMHT-MM) gives a fix per scan and their joint covariance;
@@ -36,7 +41,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,6 +63,11 @@ from .core.types import (
 FloatArray = NDArray[np.float64]
 HeightAid = Callable[[float], "tuple[float, float] | None"]
 _TOL = 1e-9
+
+#: "no fix" reasons of a batch matcher for which a longer window is tried (``Pipeline(long_window=...)``): the
+#: section does not single out one place, and more of the track may (the likelihood matchers' "ambiguous: ..." and
+#: :data:`~magnav_ins.aiding.matchers.likelihood.EDGE_REASON`)
+LONG_WINDOW_REASONS = ("ambiguous", "likelihood reaches the edge of the search window")
 
 
 @dataclass(frozen=True)
@@ -102,7 +112,9 @@ class Pipeline:
     the :class:`FieldReadings` in :meth:`run`); ``height_aid``: optional ``t -> (h, sigma)`` height source;
     ``rng``: generator for a recursive matcher's initiation; ``min_section_m``: shortest INS-indicated track (m, the
     diagonal of its north/east extent) a batch window must span to be matched (None: the map's cell size,
-    ``fmap.spacing_m``, else 0; 0 = no test; module docstring).
+    ``fmap.spacing_m``, else 0; 0 = no test; module docstring); ``long_window``: readings of a second, longer
+    window a batch matcher is asked to match when the ``window`` one gives no fix for one of
+    :data:`LONG_WINDOW_REASONS` (None: no second try; :meth:`match_window`).
     """
 
     def __init__(
@@ -118,6 +130,7 @@ class Pipeline:
         height_aid: HeightAid | None = None,
         rng: np.random.Generator | None = None,
         min_section_m: float | None = None,
+        long_window: int | None = None,
     ) -> None:
         if matcher is not None and fmap is None:
             raise ConfigError("Pipeline: a matcher needs a map (fmap)")
@@ -128,6 +141,11 @@ class Pipeline:
         self.fmap = fmap
         self.window = int(window)
         self.match_every = int(match_every)
+        if long_window is not None and not (isinstance(long_window, int | np.integer) and long_window > window):
+            raise ConfigError(
+                f"Pipeline: long_window must be a number of readings above window ({window}), got {long_window!r}"
+            )
+        self.long_window = None if long_window is None else int(long_window)
         self.reading_sigma = reading_sigma
         kind = reading_kind if reading_kind is not None else getattr(fmap, "kind", None)
         self.reading_kind = FieldKind(kind) if kind is not None else None
@@ -151,7 +169,7 @@ class Pipeline:
                 f"batch of correlated fixes (correct_batch: ukf, free_inertial); {getattr(fuser, 'name', '?')!r} has none"
             )
         self._rstate = None
-        self._stored: deque[_Stored] = deque(maxlen=self.window)
+        self._stored: deque[_Stored] = deque(maxlen=max(self.window, self.long_window or 0))
         self._pending: list[tuple[float, FloatArray | float]] = []  # readings ahead of the IMU
         self._n_readings = 0
         self._t_imu = float(fuser.estimate().nav.t)
@@ -301,8 +319,8 @@ class Pipeline:
             self._rstate = self.matcher.update(self._rstate, one, self.fmap)
             if self._n_readings % self.match_every == 0:
                 self._apply_fix(self.matcher.to_fix(self._rstate), est)
-        elif len(self._stored) == self.window and self._n_readings % self.match_every == 0:
-            s = list(self._stored)
+        elif len(self._stored) >= self.window and self._n_readings % self.match_every == 0:
+            s = list(self._stored)[-self.window :]
             span = _track_span_m(s)
             if span < self.min_section_m:
                 reason = (
@@ -311,26 +329,43 @@ class Pipeline:
                 )
                 self._apply_fix(Fix.no_fix(t, reason, getattr(self.matcher, "name", "matcher")), est)
                 return
-            readings = FieldReadings(
-                np.array([x.t for x in s]), np.array([x.value for x in s]), self.reading_sigma, self.reading_kind
-            )
-            win = MatchWindow(
-                readings,
-                np.array([x.lat for x in s]),
-                np.array([x.lon for x in s]),
-                np.array([x.h for x in s]),
-                np.array([x.cov_ne for x in s]),
-                np.array([x.v_ne for x in s]),
-            )
-            self._match(win, est)
+            long = list(self._stored) if self.long_window and len(self._stored) == self.long_window else None
+            self._match(self._window_of(s), est, None if long is None else self._window_of(long))
 
-    def _match(self, win: MatchWindow, est: NavEstimate) -> None:
-        """Match a full window of a batch matcher and apply the fix(es) (a subclass may run it elsewhere)."""
+    def _window_of(self, s: list[_Stored]) -> MatchWindow:
+        readings = FieldReadings(
+            np.array([x.t for x in s]), np.array([x.value for x in s]), self.reading_sigma, self.reading_kind
+        )
+        return MatchWindow(
+            readings,
+            np.array([x.lat for x in s]),
+            np.array([x.lon for x in s]),
+            np.array([x.h for x in s]),
+            np.array([x.cov_ne for x in s]),
+            np.array([x.v_ne for x in s]),
+        )
+
+    def match_window(self, win: MatchWindow, long: MatchWindow | None = None) -> Fix:
+        """The matcher's fix for ``win``; when that is a "no fix" for one of :data:`LONG_WINDOW_REASONS` (an
+        ambiguous likelihood, or one that reaches the edge of the search window: the section holds too few features
+        to single out one place) and ``long`` (the last ``long_window`` readings) is given, the fix for ``long``
+        (whatever it is; its reason says which window it came from)."""
+        fix = self.matcher.match(win, self.fmap)
+        if long is None or fix.available or not fix.reason.startswith(LONG_WINDOW_REASONS):
+            return fix
+        second = self.matcher.match(long, self.fmap)
+        if second.available:
+            return second
+        return replace(second, reason=f"{fix.reason}; {len(long.readings)} readings: {second.reason}")
+
+    def _match(self, win: MatchWindow, est: NavEstimate, long: MatchWindow | None = None) -> None:
+        """Match a full window of a batch matcher and apply the fix(es) (a subclass may run it elsewhere);
+        ``long``: the longer window of a second try (:meth:`match_window`)."""
         if self._batch:
             fixes, cov = self.matcher.match_batch(win, self.fmap)
             self._apply_batch(fixes, cov, est)
         else:
-            self._apply_fix(self.matcher.match(win, self.fmap), est)
+            self._apply_fix(self.match_window(win, long), est)
 
     def _apply_batch(self, fixes: list[Fix], cov: FloatArray, before: NavEstimate) -> None:
         """A retrodiction batch: every fix is kept; the available ones go to ``fuser.correct_batch`` with their

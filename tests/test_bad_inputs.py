@@ -432,6 +432,11 @@ CASES = [
         ("bridge", "--connect", "udpin:127.0.0.1:14550", "--map", MAP, "--summary-json", "adir", "--duration", "5"),
         ("--summary-json adir", "is a folder"),
     ),  # fmt: skip
+    Case(
+        "bridge-long-window",
+        ("bridge", "--connect", "udpin:127.0.0.1:14550", "--map", MAP, "--window", "80", "--long-window", "60"),
+        ("--long-window 60", "--window (80)"),
+    ),  # fmt: skip
     # ---- suite
     Case("suite-seeds-0", ("suite", "--seeds", "0"), ("--seeds",)),
     Case("suite-rio-missing", ("suite", "--only", "rio", "--rio", "nope.csv.xz"), ("nope.csv.xz",)),

@@ -222,3 +222,67 @@ def test_a_window_that_did_not_move_is_not_matched() -> None:
     assert len(matcher.windows) == len(res.fixes) > 0 and all(f.available for f in res.fixes)
     with pytest.raises(ConfigError, match="min_section_m"):
         Pipeline(make_fuser("ukf", init, nz), matcher, CellMap(), min_section_m=float("nan"))
+
+
+class ShortSightedMatcher(NoisyTruthMatcher):
+    """Test-only: a window under ``need`` readings is "no fix" with ``reason`` (an ambiguous likelihood: the section
+    holds too few features); a longer one gets the noisy-truth fix."""
+
+    def __init__(self, traj, need: int, reason: str) -> None:
+        super().__init__(traj)
+        self.need, self.reason = need, reason
+
+    def match(self, window: MatchWindow, fmap) -> Fix:
+        if len(window.readings) < self.need:
+            self.windows.append(window)
+            return Fix.no_fix(float(window.readings.t[-1]), self.reason, self.name)
+        return super().match(window, fmap)
+
+
+def test_an_ambiguous_window_is_tried_again_with_the_long_window() -> None:
+    """``long_window``: a window whose fix is ambiguous (or reaches the search window's edge) is matched again over
+    the last ``long_window`` readings, which end at the same reading; other "no fix" reasons are final."""
+    traj, imu, init, nz, readings = scenario()
+    matcher = ShortSightedMatcher(traj, 20, "ambiguous: 3 likelihood peaks in the search window")
+    pipe = Pipeline(make_fuser("ukf", init, nz), matcher, FlatMap(), window=10, match_every=10, long_window=20)
+    res = pipe.run(imu, readings)
+    n = len(res.fixes)
+    assert n >= 15
+    # the first window (10 readings stored) cannot be tried again; every later one is, over 20 readings
+    assert not res.fixes[0].available and res.fixes[0].reason.startswith("ambiguous")
+    assert all(f.available for f in res.fixes[1:])
+    lengths = [len(w.readings) for w in matcher.windows]
+    assert lengths == [10] + [10, 20] * (n - 1)
+    for short, long in zip(matcher.windows[1::2], matcher.windows[2::2], strict=True):
+        assert long.readings.t[-1] == short.readings.t[-1] and np.all(long.readings.t[-10:] == short.readings.t)
+    # a reason a longer window cannot help (here "flat map") is final; so is an ambiguous long window, with both reasons
+    flat = ShortSightedMatcher(traj, 20, "flat map: feature variability 0.1 below 0.3")
+    res = Pipeline(make_fuser("ukf", init, nz), flat, FlatMap(), window=10, match_every=10, long_window=20).run(
+        imu, readings
+    )
+    assert [len(w.readings) for w in flat.windows] == [10] * len(res.fixes) and not any(f.available for f in res.fixes)
+    never = ShortSightedMatcher(traj, 99, "ambiguous: 2 likelihood peaks")
+    res = Pipeline(make_fuser("ukf", init, nz), never, FlatMap(), window=10, match_every=10, long_window=20).run(
+        imu, readings
+    )
+    assert "; 20 readings: ambiguous" in res.fixes[-1].reason
+    with pytest.raises(ConfigError, match="long_window"):
+        Pipeline(make_fuser("ukf", init, nz), never, FlatMap(), window=10, long_window=10)
+
+
+def test_the_bridge_s_background_scan_tries_the_long_window_too() -> None:
+    from magnav_ins.mavlink.online import OnlinePipeline
+
+    traj, imu, init, nz, readings = scenario()
+    matcher = ShortSightedMatcher(traj, 20, "likelihood reaches the edge of the search window")
+    pipe = OnlinePipeline(make_fuser("ukf", init, nz), matcher, FlatMap(), window=10, match_every=10, long_window=20,
+                          reading_sigma=1.0, background_matching=True)  # fmt: skip
+    r = 0
+    for k in range(1, int(45 * RATE_HZ)):
+        if r < len(readings) and readings.t[r] <= imu.t[k]:
+            pipe.push_reading(float(readings.t[r]), readings.value[r])
+            r += 1
+        pipe.push_imu(float(imu.t[k]), imu.gyro_b[k], imu.accel_b[k])
+    pipe.finish_matching(timeout_s=30.0)
+    assert [len(w.readings) for w in matcher.windows] == [10, 10, 20, 10, 20, 10, 20]
+    assert [f.available for f in pipe.fixes] == [False, True, True, True]

@@ -215,9 +215,9 @@ class OnlinePipeline(Pipeline):
         return rows
 
     # -- background matching -------------------------------------------------------------------------------
-    def _match(self, win: MatchWindow, est: NavEstimate) -> None:
+    def _match(self, win: MatchWindow, est: NavEstimate, long: MatchWindow | None = None) -> None:
         if not self.background_matching or self._batch:
-            super()._match(win, est)
+            super()._match(win, est, long)
             return
         if self._job is not None:
             self.matches_deferred += 1
@@ -225,7 +225,7 @@ class OnlinePipeline(Pipeline):
             return
         if self._executor is None:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="magnav-matcher")
-        self._job = (self._executor.submit(self.matcher.match, win, self.fmap), float(est.nav.t))
+        self._job = (self._executor.submit(self.match_window, win, long), float(est.nav.t))
 
     def _collect(self) -> None:
         """Apply the finished scan's fix at its own time and shift the stored window by the correction."""
@@ -275,6 +275,7 @@ def make_online_pipeline(
     reading_sigma: float = 5.0,
     window: int = 30,
     match_every: int = 10,
+    long_window: int | None = None,
     velocity_sigma_mps: float = 0.2,
     attitude_sigma_rad: tuple[float, float, float] = (0.005, 0.005, 0.02),
     altitude_hold: bool = True,
@@ -293,8 +294,8 @@ def make_online_pipeline(
     (:func:`magnav_ins.aiding.matchers.registry.build_matcher`), ``"none"`` for no matching; ``fusion``: ``ukf`` |
     ``graph`` | ``free_inertial`` (:func:`magnav_ins.aiding.fusion.make_fuser`), with ``fusion_options`` for its
     constructor; ``reading_sigma``: 1-sigma of a reading in the map's unit (sensor noise and uncompensated vehicle
-    field); ``window`` / ``match_every``: readings per batch-matcher window and between match attempts
-    (:class:`~magnav_ins.pipeline.Pipeline`); ``velocity_sigma_mps`` (m/s) and ``attitude_sigma_rad`` (roll, pitch,
+    field); ``window`` / ``match_every`` / ``long_window``: readings per batch-matcher window, between match
+    attempts, and of the longer window tried after an ambiguous one (:class:`~magnav_ins.pipeline.Pipeline`); ``velocity_sigma_mps`` (m/s) and ``attitude_sigma_rad`` (roll, pitch,
     yaw, rad): initial 1-sigmas; ``altitude_hold``: clamp the INS height to ``nav0.h`` (the free vertical channel
     diverges in minutes); the bridge and the replay move the clamp to the barometric height when pressure arrives
     (:func:`.baro.hold_height`); ``sample_type``, ``gyro_bias_b``, ``accel_bias_b``, ``background_matching``:
@@ -331,6 +332,7 @@ def make_online_pipeline(
         accel_bias_b=accel_bias_b,
         window=window,
         match_every=match_every,
+        long_window=long_window,
         reading_sigma=float(reading_sigma),
         reading_kind=kind,
         height_aid=None,
