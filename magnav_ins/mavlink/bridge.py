@@ -718,6 +718,7 @@ class Bridge:
             if m is None:
                 return
         self._imu_seen_at = self._clock()
+        self._last_imu_rx = self._imu_seen_at  # the newest sample, with the INS running or not (held, aligning)
         h.imu_samples += 1
         h.last_imu_t = m.t
         gap = math.isfinite(self._last_imu_t) and dt > self.config.max_gap_s
@@ -735,7 +736,6 @@ class Bridge:
         self._apply_baro(m.t)
         self._pipeline.push_imu(m.t, m.gyro_b, m.accel_b)
         self._last_imu_t = m.t
-        self._last_imu_rx = self._imu_seen_at
         self._gnss_fix()
         self._reading(m)
         if self.config.align:
