@@ -23,7 +23,7 @@ Loop (Wang et al. 2022, seed 001, Fig. 1 / sec. 3.3; Storms 2009, seed 004, sec.
   ambiguous, or whose likelihood reaches the edge of the search window, is matched again over the last
   ``long_window`` readings (:meth:`Pipeline.match_window`): a section over a smooth stretch of the map fits several
   places, and a longer one reaches the next features (the bridge's default, twice its 80-reading window: on the
-  SITL flights of issue 17 with 11-28 such refusals each, the bridge lost trust for 8-119 s on 6 of 16 recordings
+  SITL flights of issue 17 with 11-28 such refusals each, the bridge lost trust for 14-119 s on 6 of 16 recordings
   played back, 9-44 s on 4 with it).
 * Every fix (also "no fix") goes to ``fuser.correct`` (its :class:`Innovation` records acceptance and reason), with
   the optional height aid ``height_aid(t) -> (h_m, sigma_m)`` (e.g. a barometer). A batch matcher in retrodiction
@@ -51,6 +51,7 @@ from .core.frames import latlon_to_meters, meters_to_latlon
 from .core.protocols import FieldMap, MatchWindow
 from .core.types import (
     DEFAULT_INTEGRITY_RISK,
+    EDGE_REASON,
     FieldKind,
     FieldReadings,
     Fix,
@@ -66,8 +67,8 @@ _TOL = 1e-9
 
 #: "no fix" reasons of a batch matcher for which a longer window is tried (``Pipeline(long_window=...)``): the
 #: section does not single out one place, and more of the track may (the likelihood matchers' "ambiguous: ..." and
-#: :data:`~magnav_ins.aiding.matchers.likelihood.EDGE_REASON`)
-LONG_WINDOW_REASONS = ("ambiguous", "likelihood reaches the edge of the search window")
+#: :data:`~magnav_ins.core.types.EDGE_REASON`)
+LONG_WINDOW_REASONS = ("ambiguous", EDGE_REASON)
 
 
 @dataclass(frozen=True)

@@ -210,6 +210,12 @@ class FieldReadings:
         return len(self.t)
 
 
+#: the start of a batch matcher's "no fix" reason when its likelihood's peak region reaches the border of the scanned
+#: window (the likelihood matchers, PMHT-MM); the pipeline tries a longer window after it
+#: (:data:`magnav_ins.pipeline.LONG_WINDOW_REASONS`)
+EDGE_REASON = "likelihood reaches the edge of the search window"
+
+
 @dataclass(frozen=True)
 class Fix:
     """A position fix from a matcher, or a "no fix" (``available=False``) with a ``reason``.

@@ -66,6 +66,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
+from functools import cached_property
 from typing import Any, Protocol
 
 import numpy as np
@@ -341,11 +342,19 @@ class _Held:
     source: str
 
 
+def _largest_sigma(cov_ne: np.ndarray) -> float:
+    """The largest 1-sigma (m) of a horizontal covariance (2, 2) m^2; inf when it is not finite."""
+    cov = np.asarray(cov_ne, dtype=float)
+    if not np.all(np.isfinite(cov)):
+        return math.inf
+    return math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0))
+
+
 @dataclass(frozen=True)
 class _Solution:
     """What an output reports: position (rad, m ellipsoidal), NED velocity, attitude, 1-sigmas (m, m/s), the
-    protection level (m, nan if none) and the horizontal covariance ``cov_ne`` (2, 2) north/east m^2 (``sigma_h`` is
-    its largest 1-sigma: what the output's accuracy fields carry, in every direction)."""
+    protection level (m, nan if none) and the horizontal covariance ``cov_ne`` (2, 2) north/east m^2; ``sigma_h``
+    is its largest 1-sigma, what the output's accuracy fields carry in every direction."""
 
     t: float
     lat: float
@@ -353,12 +362,15 @@ class _Solution:
     h: float
     v_n: np.ndarray
     q_nb: np.ndarray
-    sigma_h: float
+    cov_ne: np.ndarray
     sigma_v: float
     sigma_speed: float
     hpl_m: float
     finite: bool
-    cov_ne: np.ndarray
+
+    @cached_property
+    def sigma_h(self) -> float:
+        return _largest_sigma(self.cov_ne)
 
 
 class Bridge:
@@ -902,7 +914,7 @@ class Bridge:
         metres on the ground; its position controller asks for a lean to follow (2 m is 22 deg at ArduCopter's
         default gains), and its land detector refuses a landing while more than 15 deg is asked for: the copter did
         not disarm. Holding the autopilot's estimate moves nothing, and costs less than the sigma it states."""
-        sigma = self._sigma_h(est)
+        sigma = _largest_sigma(est.cov_ne)
         own = _Held(est.nav.lat, est.nav.lon, est.nav.h, sigma, "solution before landing")
         pos = self._last_position
         if pos is None or self._clock() - pos[1] > 1.0 or not math.isfinite(sigma):
@@ -1139,13 +1151,6 @@ class Bridge:
             log.info("the autopilot has no EKF origin: sent SET_GPS_GLOBAL_ORIGIN")
 
     # -- output --------------------------------------------------------------------------------------------
-    @staticmethod
-    def _sigma_h(est: NavEstimate) -> float:
-        cov = np.asarray(est.cov_ne)
-        if not np.all(np.isfinite(cov)):
-            return math.inf
-        return math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0))
-
     def _vertical_sigma(self, t: float) -> float:
         """1-sigma of the output height, m: the initial height's, grown by a barometer's drift (1 m + 1 cm/s since
         its reference); without a barometer the held height is as uncertain as 10 m plus the initial sigma."""
@@ -1168,7 +1173,7 @@ class Bridge:
             v_n = np.array([0.0, 0.0, -climb if climb is not None else 0.0])
             return _Solution(
                 t, held.lat, held.lon, held.h if h_baro is None else h_baro, v_n, q_nb_from_euler(roll, pitch, yaw),
-                held.sigma_m, self._vertical_sigma(t), 0.05, math.nan, True, np.eye(2) * held.sigma_m**2,
+                np.diag([held.sigma_m**2] * 2), self._vertical_sigma(t), 0.05, math.nan, True,
             )  # fmt: skip
         est = self._pipeline.estimate()
         nav = est.nav
@@ -1181,8 +1186,8 @@ class Bridge:
         sigma_speed = math.sqrt(max((P[vel.start, vel.start] + P[vel.start + 1, vel.start + 1]) / 2.0, 0.0))
         finite = bool(np.all(np.isfinite(P[:9, :9])) and math.isfinite(nav.lat) and math.isfinite(nav.lon))
         hpl = float(getattr(est, "hpl_m", math.nan))
-        return _Solution(nav.t, nav.lat, nav.lon, nav.h, v_n, nav.q_nb, self._sigma_h(est),
-                         self._vertical_sigma(nav.t), sigma_speed, hpl, finite, np.asarray(est.cov_ne, float))  # fmt: skip
+        return _Solution(nav.t, nav.lat, nav.lon, nav.h, v_n, nav.q_nb, np.asarray(est.cov_ne, float),
+                         self._vertical_sigma(nav.t), sigma_speed, hpl, finite)  # fmt: skip
 
     def _trust(self, s: _Solution) -> tuple[bool, str]:
         c = self.config

@@ -84,7 +84,7 @@ from scipy import ndimage
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
-from ...core.types import Fix
+from ...core.types import EDGE_REASON, Fix
 from ._kernels import grid_far_max, grid_moments, grid_scan1, grid_variability, section_loglik
 from ._local import (
     MapFrame,
@@ -146,8 +146,6 @@ class Surface:
     prior_cov: FloatArray | None = None  # (2, 2) m^2, the INS covariance at the last reading (the issuing rule)
 
 
-#: the "no fix" reason when the likelihood's peak region reaches the border of the scanned window
-EDGE_REASON = "likelihood reaches the edge of the search window"
 #: the "no fix" reason when the likelihood's peak region reaches scanned nodes without map values (the map's edge)
 MAP_EDGE_REASON = (
     "map edge: the likelihood's peak region reaches positions without map values, so it is cut off there (its "

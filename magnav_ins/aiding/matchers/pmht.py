@@ -168,7 +168,7 @@ from scipy.special import ndtri
 
 from ...core.errors import ConfigError
 from ...core.protocols import FieldMap, MatchWindow
-from ...core.types import DEFAULT_INTEGRITY_RISK, Fix
+from ...core.types import DEFAULT_INTEGRITY_RISK, EDGE_REASON, Fix
 from ...maps.variability import feature_variability_track
 from ._batch import (
     RIVAL_PEAK_RATIO,
@@ -437,9 +437,6 @@ LEVEL_REPASS = 0.25
 #: a direction whose readings add less than this share of the gate-posterior's information is taken at this share by
 #: the de-prior (:meth:`PMHTMatcher._deprior_estimate`): at most 50 x the variance and the extrapolation
 DEPRIOR_MIN_RATIO = 0.02
-#: the reason of a fix whose likelihood runs out of the (widest) search gate in a direction the fix claims to know
-#: (module docstring, "Search gate"); the same words as the likelihood matchers'
-EDGE_REASON = "likelihood reaches the edge of the search window"
 _SIDE_NAMES = {(-1, 0): "south", (1, 0): "north", (0, -1): "west", (0, 1): "east"}
 
 
